@@ -1,0 +1,1 @@
+"""Device interfaces and their implementations over pyserial and pyusb."""

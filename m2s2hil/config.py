@@ -1,0 +1,296 @@
+"""The rig configuration: a TOML file validated by pydantic.
+
+A configuration names every device (protocol, port URL, serial settings), maps the
+turntable and tilt axes onto motion devices, assigns lamps to relay channels, and
+defines the lighting presets, elevations, camera model and processing defaults.
+Without a file the built-in, fully simulated rig is used.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from m2s2hil.errors import ConfigError
+
+MOTION_PROTOCOLS = ("grbl", "zaber")
+RELAY_PROTOCOLS = ("modbus-rtu", "ascii-relay")
+Protocol = Literal["grbl", "zaber", "modbus-rtu", "ascii-relay"]
+
+# Default MSFA layout (band index 0..9 at each of the 16 positions of the 4x4 cell).
+# The TOUCAN's real layout is not public; this documented default spreads the six
+# duplicated bands (0-5) so every band's positions are as far apart as the cell allows.
+DEFAULT_LAYOUT: tuple[tuple[int, ...], ...] = (
+    (0, 1, 2, 3),
+    (4, 5, 6, 7),
+    (8, 9, 0, 1),
+    (2, 3, 4, 5),
+)
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DeviceConfig(_Model):
+    protocol: Protocol
+    port: str = Field(min_length=1, description="/dev/ttyUSB0, a pty path, or sim://NAME")
+    baudrate: Annotated[int, Field(gt=0)] = 115200
+    bytesize: Literal[5, 6, 7, 8] = 8
+    parity: Literal["N", "E", "O", "M", "S"] = "N"
+    stopbits: Literal[1, 1.5, 2] = 1
+    timeout_s: Annotated[float, Field(gt=0, le=60)] = 1.0
+    unit: Annotated[int, Field(ge=0, le=247)] = 1  # Modbus unit id / Zaber device address
+    retries: Annotated[int, Field(ge=0, le=10)] = 2
+
+
+class AxisConfig(_Model):
+    device: str
+    axis: str = Field(description="GRBL axis letter (X, Y, Z) or Zaber axis number")
+    units_per_degree: Annotated[float, Field(gt=0)] = 1.0
+    min_deg: float = -360.0
+    max_deg: float = 360.0
+    max_speed_dps: Annotated[float, Field(gt=0)] = 30.0
+    accel_dps2: Annotated[float, Field(gt=0)] = 60.0
+    tolerance_deg: Annotated[float, Field(gt=0)] = 0.05
+    cable_wrap_limit_deg: Annotated[float, Field(gt=0)] | None = None
+    settle_s: Annotated[float, Field(ge=0)] = 0.0
+
+    @model_validator(mode="after")
+    def _limits(self) -> AxisConfig:
+        if self.min_deg >= self.max_deg:
+            raise ValueError(f"min_deg ({self.min_deg}) must be below max_deg ({self.max_deg})")
+        return self
+
+
+class LampConfig(_Model):
+    channel: Annotated[int, Field(ge=0, le=255)]
+    kind: Literal["led_bar", "spotlight"]
+    warmup_s: Annotated[float, Field(ge=0, le=600)] = 1.0
+    lumens: Annotated[float, Field(gt=0)] | None = None
+
+
+class CameraModel(_Model):
+    name: str = "SILIOS TOUCAN"
+    width: Annotated[int, Field(gt=0)] = 2048
+    height: Annotated[int, Field(gt=0)] = 2048
+    bit_depth: Literal[8, 10, 12, 16] = 10
+    pixel_pitch_um: Annotated[float, Field(gt=0)] = 5.5
+    bands_nm: tuple[float, ...] = (431, 479, 515, 567, 611, 666, 719, 775, 820, 877)
+    fwhm_nm: tuple[float, ...] = (65, 47, 42, 37, 36, 34, 33, 31, 31, 31)
+    layout: tuple[tuple[int, ...], ...] = DEFAULT_LAYOUT
+    max_fps: Annotated[float, Field(gt=0)] = 65.0
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraModel:
+        nb = len(self.bands_nm)
+        if len(self.fwhm_nm) != nb:
+            raise ValueError(f"fwhm_nm has {len(self.fwhm_nm)} values for {nb} bands")
+        n = len(self.layout)
+        if n == 0 or any(len(row) != n for row in self.layout):
+            raise ValueError("layout must be a square n x n array of band indices")
+        seen = {b for row in self.layout for b in row}
+        bad = sorted(b for b in seen if not 0 <= b < nb)
+        if bad:
+            raise ValueError(f"layout names bands {bad} outside 0..{nb - 1}")
+        missing = sorted(set(range(nb)) - seen)
+        if missing:
+            raise ValueError(f"layout has no position for bands {missing}")
+        if self.width % n or self.height % n:
+            raise ValueError(f"sensor {self.width}x{self.height} is not a multiple of {n}")
+        return self
+
+    @property
+    def n_bands(self) -> int:
+        return len(self.bands_nm)
+
+    @property
+    def period(self) -> int:
+        return len(self.layout)
+
+    @property
+    def full_scale(self) -> int:
+        return (1 << self.bit_depth) - 1
+
+
+class CameraConfig(_Model):
+    port: str = Field(
+        default="sim://toucan",
+        description="sim://NAME for the simulated TOUCAN, or usb:// to open a U3V camera",
+    )
+    vendor_id: Annotated[int, Field(ge=0, le=0xFFFF)] | None = None
+    product_id: Annotated[int, Field(ge=0, le=0xFFFF)] | None = None
+    serial: str | None = None
+    calibration_file: Path | None = None
+    timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+    model: CameraModel = CameraModel()
+
+
+class ProcessingConfig(_Model):
+    method: str = "superpixel"
+    dark_reduce: Literal["mean", "median"] = "mean"
+    dark_frames: Annotated[int, Field(ge=1, le=256)] = 8
+    dark_temperature_tolerance_c: Annotated[float, Field(gt=0)] = 2.0
+
+
+class RigInfo(_Model):
+    name: str = "rig"
+
+
+class RigConfig(_Model):
+    rig: RigInfo = RigInfo()
+    devices: dict[str, DeviceConfig]
+    axes: dict[Literal["turntable", "tilt"], AxisConfig]
+    lamps: dict[str, LampConfig]
+    lighting: dict[str, tuple[str, ...]]
+    elevations: dict[str, float]
+    camera: CameraConfig = CameraConfig()
+    processing: ProcessingConfig = ProcessingConfig()
+    simulation: dict[str, object] = Field(
+        default_factory=dict, description="simulator parameters (scene, sensor, faults)"
+    )
+
+    @field_validator("axes")
+    @classmethod
+    def _both_axes(cls, v: dict) -> dict:
+        missing = {"turntable", "tilt"} - set(v)
+        if missing:
+            raise ValueError(f"missing axes: {', '.join(sorted(missing))}")
+        return v
+
+    @model_validator(mode="after")
+    def _cross(self) -> RigConfig:
+        from m2s2hil.catalog import load_catalog
+
+        cat = load_catalog()
+        for role, ax in self.axes.items():
+            dev = self.devices.get(ax.device)
+            if dev is None:
+                raise _KeyedError(f"axes.{role}.device", f"no device named {ax.device!r}")
+            if dev.protocol not in MOTION_PROTOCOLS:
+                raise _KeyedError(
+                    f"axes.{role}.device", f"device {ax.device!r} speaks {dev.protocol}, not motion"
+                )
+            if dev.protocol == "grbl" and ax.axis.upper() not in ("X", "Y", "Z"):
+                raise _KeyedError(f"axes.{role}.axis", f"GRBL axis must be X, Y or Z, not {ax.axis!r}")
+            if dev.protocol == "zaber" and not ax.axis.isdigit():
+                raise _KeyedError(f"axes.{role}.axis", f"Zaber axis must be a number, not {ax.axis!r}")
+        relays = [n for n, d in self.devices.items() if d.protocol in RELAY_PROTOCOLS]
+        if self.lamps and len(relays) != 1:
+            raise _KeyedError("devices", f"lamps need exactly one relay board, found {len(relays)}")
+        chans: dict[int, str] = {}
+        for name, lamp in self.lamps.items():
+            if lamp.channel in chans:
+                raise _KeyedError(
+                    f"lamps.{name}.channel",
+                    f"channel {lamp.channel} already used by lamp {chans[lamp.channel]!r}",
+                )
+            chans[lamp.channel] = name
+        for cond in cat.lighting:
+            if cond not in self.lighting:
+                raise _KeyedError("lighting", f"missing preset for condition {cond!r}")
+        for cond, lamps in self.lighting.items():
+            if cond not in cat.lighting:
+                raise _KeyedError(f"lighting.{cond}", f"unknown condition; known: {sorted(cat.lighting)}")
+            for lamp in lamps:
+                if lamp not in self.lamps:
+                    raise _KeyedError(f"lighting.{cond}", f"no lamp named {lamp!r}")
+        for e in cat.elevations:
+            if e not in self.elevations:
+                raise _KeyedError("elevations", f"missing tilt angle for {e}")
+        tilt = self.axes["tilt"]
+        for e, ang in self.elevations.items():
+            if e not in cat.elevations:
+                raise _KeyedError(f"elevations.{e}", f"unknown elevation; known: {sorted(cat.elevations)}")
+            if not tilt.min_deg <= ang <= tilt.max_deg:
+                raise _KeyedError(
+                    f"elevations.{e}", f"{ang} deg is outside the tilt soft limits "
+                    f"[{tilt.min_deg}, {tilt.max_deg}]"
+                )
+        return self
+
+    # Convenience views -------------------------------------------------------------
+    @property
+    def relay_device(self) -> str:
+        return next(n for n, d in self.devices.items() if d.protocol in RELAY_PROTOCOLS)
+
+    def lamp_channels(self, condition: str) -> tuple[int, ...]:
+        return tuple(sorted(self.lamps[n].channel for n in self.lighting[condition]))
+
+    def warmup_s(self, condition: str) -> float:
+        return max((self.lamps[n].warmup_s for n in self.lighting[condition]), default=0.0)
+
+    @cached_property
+    def digest(self) -> str:
+        """sha256 of the canonical JSON form; recorded with every frame."""
+        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()
+
+
+class _KeyedError(ValueError):
+    """A cross-field problem that knows which key it is about."""
+
+    def __init__(self, key: str, problem: str) -> None:
+        super().__init__(problem)
+        self.key = key
+        self.problem = problem
+
+
+DEFAULT_RIG_SOURCE = "<built-in simulated rig>"
+
+
+def parse_rig(data: dict, source: str) -> RigConfig:
+    try:
+        return RigConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        ctx_err = (err.get("ctx") or {}).get("error")
+        if isinstance(ctx_err, _KeyedError):
+            raise ConfigError(source, ctx_err.key, ctx_err.problem) from None
+        key = ".".join(str(p) for p in err["loc"])
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        more = len(exc.errors()) - 1
+        if more:
+            msg += f" (and {more} more problem{'s' if more > 1 else ''})"
+        raise ConfigError(source, key, msg) from None
+
+
+def load_rig(path: str | Path | None = None) -> RigConfig:
+    """Load and validate a rig file; ``None`` gives the built-in simulated rig."""
+    if path is None:
+        text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
+        source = DEFAULT_RIG_SOURCE
+    else:
+        p = Path(path)
+        source = str(p)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise ConfigError(source, "", "no such file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(source, "", f"cannot read: {exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(source, "", f"not valid TOML: {exc}") from None
+    return parse_rig(data, source)
+
+
+def default_rig() -> RigConfig:
+    return load_rig(None)

@@ -1,0 +1,92 @@
+"""The simulated world the devices share: stage pose, lamps, lens cap, mockup.
+
+Motion simulators attach their axes (a function returning degrees at the current
+clock time); relay simulators set lamp channels; the camera simulator reads all of
+it to render a frame. Nothing here knows about bytes.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class LampInfo:
+    name: str
+    kind: str  # "led_bar" | "spotlight"
+    warmup_s: float
+
+
+@dataclass(frozen=True)
+class Pose:
+    azimuth_deg: float
+    tilt_deg: float
+
+
+@dataclass
+class World:
+    clock: Any
+    lamp_info: dict[int, LampInfo] = field(default_factory=dict)  # relay channel -> lamp
+    satellite: str = "voyager"
+    build: str = "B3"
+    lens_cap: bool = False
+    sensor_temperature_c: float = 35.0
+    spot_angle_deg: float = 45.0  # spotlight incidence, from the camera axis, about vertical
+
+    def __post_init__(self) -> None:
+        self._lock = threading.RLock()
+        self._axes: dict[str, Callable[[], float]] = {}
+        self._lamp_on_since: dict[int, float] = {}
+        self.version = 0  # bumped on every change a renderer may cache on
+
+    # -- stage -----------------------------------------------------------------------
+    def attach_axis(self, role: str, degrees: Callable[[], float]) -> None:
+        with self._lock:
+            self._axes[role] = degrees
+
+    def pose(self) -> Pose:
+        with self._lock:
+            az = self._axes.get("turntable", lambda: 0.0)()
+            tilt = self._axes.get("tilt", lambda: 0.0)()
+        return Pose(azimuth_deg=az, tilt_deg=tilt)
+
+    # -- lamps -----------------------------------------------------------------------
+    def set_lamp(self, channel: int, on: bool) -> None:
+        with self._lock:
+            was = channel in self._lamp_on_since
+            if on and not was:
+                self._lamp_on_since[channel] = self.clock.monotonic()
+                self.version += 1
+            elif not on and was:
+                del self._lamp_on_since[channel]
+                self.version += 1
+
+    def lamps_on(self) -> frozenset[int]:
+        with self._lock:
+            return frozenset(self._lamp_on_since)
+
+    def lamp_output(self) -> dict[int, float]:
+        """Relative output of every lit channel, 0..1; LEDs ramp up over their warm-up."""
+        now = self.clock.monotonic()
+        out: dict[int, float] = {}
+        with self._lock:
+            for ch, since in self._lamp_on_since.items():
+                info = self.lamp_info.get(ch)
+                warm = info.warmup_s if info else 0.0
+                out[ch] = 1.0 if warm <= 0 else min(1.0, 0.5 + 0.5 * (now - since) / warm)
+        return out
+
+    # -- scene -----------------------------------------------------------------------
+    def mount(self, satellite: str, build: str) -> None:
+        """Put a mockup on the turntable (the operator's job on the bench)."""
+        with self._lock:
+            self.satellite, self.build = satellite, build
+            self.version += 1
+
+    def set_lens_cap(self, on: bool) -> None:
+        with self._lock:
+            self.lens_cap = on
+            self.version += 1
