@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
+
+import numpy as np
 
 
 @runtime_checkable
@@ -41,5 +44,44 @@ class LightBank(Protocol):
         ...
 
     def state(self) -> frozenset[int]: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One validated camera frame: the raw mosaic and what the camera said about it."""
+
+    data: np.ndarray  # uint16, (height, width), values in 0..2**bit_depth-1
+    block_id: int
+    timestamp_s: float  # device timestamp, seconds
+    exposure_s: float
+    gain: float
+    pixel_format: str  # "Mono10", "Mono10p", "Mono12", "Mono16"
+    temperature_c: float
+    host_time_s: float = 0.0  # the host clock's monotonic time at arrival
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """A snapshot mosaic camera (a U3V camera through GenICam features)."""
+
+    name: str
+
+    def configure(self, *, exposure_s: float | None = None, gain: float | None = None) -> None: ...
+
+    def snap(self, timeout: float | None = None) -> Frame:
+        """One frame on a software trigger."""
+        ...
+
+    def start_stream(self, fps: float | None = None) -> None:
+        """Continuous acquisition (free-running at ``fps`` or the maximum rate)."""
+        ...
+
+    def read_frame(self, timeout: float | None = None) -> Frame: ...
+
+    def stop_stream(self) -> None: ...
+
+    def temperature_c(self) -> float: ...
 
     def close(self) -> None: ...
