@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +25,20 @@ class Rig:
     world: Any = None  # the simulated world when the rig is simulated, else None
     simulated: bool = False
     extras: dict[str, Any] = field(default_factory=dict)
+    #: Called to cap/uncap the lens for dark frames. A simulated rig caps its world's
+    #: lens; a real rig asks the operator (the CLI prompts, the API suspends).
+    lens_cap_hook: Callable[[bool], None] | None = None
+
+    def cap_lens(self, on: bool) -> None:
+        if self.lens_cap_hook is not None:
+            self.lens_cap_hook(on)
+        elif self.world is not None:
+            self.world.set_lens_cap(on)
+
+    def mount(self, satellite: str, build: str) -> None:
+        """Tell the simulated world which mockup is on the turntable (a no-op on the bench)."""
+        if self.world is not None:
+            self.world.mount(satellite, build)
 
     def safe(self) -> list[Exception]:
         """Lamps off and motion stopped; every step is tried even if another fails.
