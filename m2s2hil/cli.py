@@ -30,26 +30,13 @@ _register()
 
 
 def _run(typer_app: typer.Typer) -> None:
+    """Run in click's standalone mode (usage errors exit 2) and turn our typed errors
+    into one line on stderr with their exit code instead of a traceback."""
     try:
-        typer_app(standalone_mode=False)
+        typer_app()
     except M2S2Error as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         sys.exit(exc.exit_code)
-    except typer.Abort:
-        typer.secho("aborted", err=True)
-        sys.exit(130)
-    except (typer.BadParameter, typer.Exit) as exc:
-        if isinstance(exc, typer.Exit):
-            sys.exit(exc.exit_code)
-        raise
-    except Exception as exc:  # click usage errors arrive here with standalone_mode=False
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(2)
-        raise
-    sys.exit(0)
 
 
 def main() -> None:
