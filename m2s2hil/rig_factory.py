@@ -1,0 +1,291 @@
+"""Open a rig from its configuration.
+
+Every device gets its driver; every device whose port is ``sim://NAME`` also gets an
+in-process simulator registered under NAME, all sharing one simulated world. A rig
+whose devices are all simulated runs on a virtual clock unless ``realtime`` is asked
+for; a rig with any real device runs in real time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import urllib.parse
+from typing import Any
+
+from m2s2hil.catalog import load_catalog
+from m2s2hil.config import AxisConfig, DeviceConfig, RigConfig, default_rig
+from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
+from m2s2hil.errors import ConfigError
+from m2s2hil.rig import Rig
+
+log = logging.getLogger(__name__)
+
+
+def _sim_name(url: str) -> str | None:
+    if not url.startswith("sim://"):
+        return None
+    parts = urllib.parse.urlsplit(url)
+    return parts.netloc or parts.path.lstrip("/")
+
+
+def _axes_of(config: RigConfig, device: str) -> dict[str, AxisConfig]:
+    return {role: ax for role, ax in config.axes.items() if ax.device == device}
+
+
+def build_simulators(
+    config: RigConfig, clock: Any, *, faults: dict[str, list[dict]] | None = None, seed: int = 0,
+    only_sim_ports: bool = True,
+) -> tuple[Any, dict[str, Any], Any]:
+    """Create the simulated world and a simulator per device.
+
+    Returns ``(world, sims, frame_source)``; ``sims`` maps device names (and
+    ``"toucan"`` for the camera) to simulator objects. With ``only_sim_ports`` only the
+    devices whose port is ``sim://`` are simulated (and registered under their names);
+    otherwise every device is (``m2s2hil sim serve``).
+    """
+    import m2s2hil.simulators  # noqa: F401  (registers sim:// with pyserial)
+    from m2s2hil.simulators import registry
+    from m2s2hil.simulators.faults import FaultPlan
+    from m2s2hil.simulators.world import LampInfo, World
+
+    sim_cfg = dict(config.simulation)
+    fault_cfg: dict[str, list[dict]] = {k: list(v) for k, v in dict(sim_cfg.get("faults", {})).items()}
+    for k, v in (faults or {}).items():
+        fault_cfg.setdefault(k, []).extend(v)
+
+    def plan(name: str) -> FaultPlan:
+        try:
+            return FaultPlan.from_config(fault_cfg.get(name, []))
+        except (ValueError, TypeError) as exc:
+            raise ConfigError("rig", f"simulation.faults.{name}", str(exc)) from None
+
+    world = World(
+        clock,
+        lamp_info={
+            lamp.channel: LampInfo(name=name, kind=lamp.kind, warmup_s=lamp.warmup_s)
+            for name, lamp in config.lamps.items()
+        },
+        spot_angle_deg=float(sim_cfg.get("spot_angle_deg", 45.0)),
+        sensor_temperature_c=float(sim_cfg.get("sensor_temperature_c", 35.0)),
+    )
+    sims: dict[str, Any] = {}
+    for name, dev in config.devices.items():
+        reg = _sim_name(dev.port)
+        if reg is None and only_sim_ports:
+            continue
+        sim = _make_device_sim(name, dev, config, clock, world, plan(name))
+        sims[name] = sim
+        if reg is not None:
+            registry.register(reg, sim)
+
+    frame_source = None
+    cam_reg = _sim_name(config.camera.port)
+    if cam_reg is not None or not only_sim_ports:
+        from m2s2hil.simulators.frames import SimFrameSource
+        from m2s2hil.simulators.toucan import ToucanCamera
+
+        cat = load_catalog()
+        model = config.camera.model
+        frame_source = SimFrameSource(
+            world, model, lambda sat, build: list(cat.build(sat, build).materials), seed=seed
+        )
+        sims[cam_reg or "toucan"] = ToucanCamera(
+            clock=clock,
+            frame_source=frame_source,
+            width=model.width,
+            height=model.height,
+            bit_depth=model.bit_depth,
+            faults=plan(cam_reg or "toucan"),
+            name=cam_reg or "toucan",
+            max_fps=model.max_fps,
+            temperature_c=lambda: world.sensor_temperature_c,
+            serial=str(sim_cfg.get("camera_serial", "TOUCAN-SIM-0001")),
+        )
+    return world, sims, frame_source
+
+
+def _make_device_sim(name: str, dev: DeviceConfig, config: RigConfig, clock: Any, world: Any, faults: Any):
+    axes = _axes_of(config, name)
+    if dev.protocol == "grbl":
+        from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+
+        settings = {}
+        for ax in axes.values():
+            upd = ax.units_per_degree
+            settings[ax.axis.upper()] = GrblAxisSettings(
+                max_rate=ax.max_speed_dps * upd * 60.0,
+                accel=ax.accel_dps2 * upd,
+                max_travel=2.0 * max(abs(ax.min_deg), abs(ax.max_deg)) * upd,
+            )
+        sim = GrblSimulator(name, clock, axes=settings, faults=faults)
+        for role, ax in axes.items():
+            world.attach_axis(
+                role, lambda s=sim, a=ax: s.axis_position(a.axis.upper()) / a.units_per_degree
+            )
+        return sim
+    if dev.protocol == "zaber":
+        from m2s2hil.simulators.zaber import zaber_sim_for
+
+        return zaber_sim_for(name, dev, axes, clock, world, faults)
+    if dev.protocol == "modbus-rtu":
+        from m2s2hil.simulators.modbus_relay import ModbusRelaySim
+
+        return ModbusRelaySim(name, clock, faults, unit=dev.unit, on_change=world.set_lamp)
+    if dev.protocol == "ascii-relay":
+        from m2s2hil.simulators.ascii_relay import AsciiRelaySim
+
+        return AsciiRelaySim(name, clock, faults, on_change=world.set_lamp)
+    raise ConfigError("rig", f"devices.{name}.protocol", f"no simulator for {dev.protocol!r}")
+
+
+def _open_axes(name: str, dev: DeviceConfig, config: RigConfig, clock: Clock) -> tuple[Any, dict[str, Any]]:
+    axes = _axes_of(config, name)
+    if dev.protocol == "grbl":
+        from m2s2hil.drivers.grbl import GrblController
+
+        ctl = GrblController(
+            dev.port, device=name, baudrate=dev.baudrate, timeout_s=dev.timeout_s, clock=clock,
+            retries=dev.retries,
+        )
+        ctl.connect()
+        out = {
+            role: ctl.axis(
+                ax.axis, name=role, units_per_degree=ax.units_per_degree, min_deg=ax.min_deg,
+                max_deg=ax.max_deg, max_speed_dps=ax.max_speed_dps, accel_dps2=ax.accel_dps2,
+                tolerance_deg=ax.tolerance_deg, settle_s=ax.settle_s,
+            )
+            for role, ax in axes.items()
+        }
+        return ctl, out
+    if dev.protocol == "zaber":
+        from m2s2hil.drivers.zaber import open_zaber_axes
+
+        return open_zaber_axes(name, dev, axes, clock)
+    raise ConfigError("rig", f"devices.{name}.protocol", f"{dev.protocol} is not a motion protocol")
+
+
+def _open_lights(name: str, dev: DeviceConfig, clock: Clock) -> Any:
+    if dev.protocol == "modbus-rtu":
+        from m2s2hil.drivers.modbus_relay import ModbusRelayBoard
+
+        if dev.unit == 0:
+            raise ConfigError(
+                "rig", f"devices.{name}.unit", "unit 0 is broadcast: a relay board never answers it"
+            )
+        board = ModbusRelayBoard(
+            dev.port, device=name, unit=dev.unit, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
+            clock=clock, retries=dev.retries, parity=dev.parity, stopbits=dev.stopbits,
+        )
+    else:
+        from m2s2hil.drivers.ascii_relay import AsciiRelayBoard
+
+        board = AsciiRelayBoard(
+            dev.port, device=name, baudrate=dev.baudrate, timeout_s=dev.timeout_s, clock=clock,
+            retries=dev.retries,
+        )
+    board.connect()
+    return board
+
+
+def open_rig(
+    config: RigConfig | None = None,
+    *,
+    clock: Clock | None = None,
+    realtime: bool = False,
+    faults: dict[str, list[dict]] | None = None,
+    seed: int = 0,
+    home: bool = True,
+) -> Rig:
+    """Open every device of ``config`` (default: the built-in simulated rig)."""
+    from m2s2hil.drivers.u3v import U3VCamera
+
+    config = config or default_rig()
+    ports = [d.port for d in config.devices.values()] + [config.camera.port]
+    all_sim = all(p.startswith("sim://") for p in ports)
+    any_sim = any(p.startswith("sim://") for p in ports)
+    if clock is None:
+        if all_sim and not realtime:
+            from m2s2hil.simulators.clock import VirtualClock
+
+            clock = VirtualClock()
+        else:
+            clock = SYSTEM_CLOCK
+    world = frame_source = None
+    sims: dict[str, Any] = {}
+    if any_sim:
+        world, sims, frame_source = build_simulators(config, clock, faults=faults, seed=seed)
+
+    opened: list[Any] = []
+    try:
+        controllers: dict[str, Any] = {}
+        axes: dict[str, Any] = {}
+        lights = None
+        for name, dev in config.devices.items():
+            if dev.protocol in ("grbl", "zaber"):
+                if not _axes_of(config, name):
+                    continue
+                ctl, got = _open_axes(name, dev, config, clock)
+                opened.append(ctl)
+                controllers[name] = ctl
+                axes.update(got)
+            else:
+                lights = _open_lights(name, dev, clock)
+                opened.append(lights)
+        cam_cfg = config.camera
+        cam_reg = _sim_name(cam_cfg.port)
+        if cam_reg is not None:
+            from m2s2hil.simulators.u3v_backend import SimUsbBackend
+
+            toucan = sims[cam_reg]
+            camera = U3VCamera.open(
+                backend=SimUsbBackend(toucan), serial=toucan.serial, clock=clock,
+                timeout_s=cam_cfg.timeout_s, name="camera",
+            )
+        else:
+            camera = U3VCamera.open(
+                vendor_id=cam_cfg.vendor_id, product_id=cam_cfg.product_id, serial=cam_cfg.serial,
+                clock=clock, timeout_s=cam_cfg.timeout_s, name="camera",
+            )
+        opened.append(camera)
+        if home:
+            for ctl in controllers.values():
+                ctl.home()
+        if lights is None:
+            raise ConfigError("rig", "devices", "no relay board for the lamps")
+        rig = Rig(
+            config=config,
+            clock=clock,
+            turntable=axes["turntable"],
+            tilt=axes["tilt"],
+            lights=lights,
+            camera=camera,
+            world=world,
+            simulated=all_sim,
+            extras={"sims": sims, "frame_source": frame_source, "controllers": controllers},
+        )
+        rig.lights.set(())
+        return rig
+    except BaseException:
+        for dev in reversed(opened):
+            with contextlib.suppress(Exception):
+                dev.close()
+        raise
+
+
+def open_simulated_rig(
+    config: RigConfig | None = None,
+    *,
+    clock: Clock | None = None,
+    realtime: bool = False,
+    faults: dict[str, list[dict]] | None = None,
+    seed: int = 0,
+) -> Rig:
+    """The rig of ``config`` (default: built-in) with every device simulated in-process."""
+    config = config or default_rig()
+    real = [n for n, d in config.devices.items() if not d.port.startswith("sim://")]
+    if not config.camera.port.startswith("sim://"):
+        real.append("camera")
+    if real:
+        raise ConfigError("rig", "devices", f"not simulated: {', '.join(real)} (ports must be sim://NAME)")
+    return open_rig(config, clock=clock, realtime=realtime, faults=faults, seed=seed)
