@@ -253,6 +253,9 @@ def open_rig(
                 ctl.home()
         if lights is None:
             raise ConfigError("rig", "devices", "no relay board for the lamps")
+        if frame_source is not None:
+            _mirror_into_world(config, world, sims, axes, lights)
+            lights = axes.pop("_lights", lights)
         rig = Rig(
             config=config,
             clock=clock,
@@ -271,6 +274,18 @@ def open_rig(
             with contextlib.suppress(Exception):
                 dev.close()
         raise
+
+
+def _mirror_into_world(config: RigConfig, world: Any, sims: dict, axes: dict, lights: Any) -> None:
+    """A local simulated camera with non-simulated motion or relays: mirror them."""
+    from m2s2hil.mirror import MirroredAxis, MirroredLights
+
+    for role, ax in list(axes.items()):
+        if config.axes[role].device not in sims:
+            axes[role] = MirroredAxis(ax, world, role)
+            axes[role].position()
+    if config.relay_device not in sims:
+        axes["_lights"] = MirroredLights(lights, world)
 
 
 def open_simulated_rig(

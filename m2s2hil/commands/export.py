@@ -1,0 +1,45 @@
+"""``m2s2hil export SESSION --layout m2s2|hf --out DIR [--root DATA_ROOT]``.
+
+Register with ``app.add_typer(export.app, name="export")`` (the command is the group's
+callback, so no sub-command name is needed) or ``app.command("export")(export.export_cmd)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from m2s2hil.errors import UsageError
+from m2s2hil.export import LAYOUTS, export_session
+from m2s2hil.store import JOURNAL, SessionStore, default_data_root
+
+app = typer.Typer(
+    help="Export a session as the published M2S2 layout or a Hugging Face image folder.",
+    # The command is the group callback: let its options follow the SESSION argument.
+    context_settings={"allow_interspersed_args": True},
+)
+
+
+def open_session(session: str, root: Path | None) -> SessionStore:
+    """A session by id under the data root, or by the path of its folder."""
+    p = Path(session)
+    if root is None and (p / JOURNAL).is_file():
+        return SessionStore.open_path(p)
+    return SessionStore.open(root or default_data_root(), session)
+
+
+@app.callback(invoke_without_command=True)
+def export_cmd(
+    session: str = typer.Argument(..., help="session id (or the session's folder)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    layout: str = typer.Option("m2s2", "--layout", help=f"one of: {', '.join(LAYOUTS)}"),
+    root: Path | None = typer.Option(None, "--root", help="data root (default: $M2S2HIL_DATA or ./sessions)"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace files already in --out"),
+) -> None:
+    """Export SESSION's frames with their metadata."""
+    if layout not in LAYOUTS:
+        raise UsageError(f"--layout must be one of {', '.join(LAYOUTS)}, not {layout!r}")
+    with open_session(session, root) as store:
+        res = export_session(store, out, layout, overwrite=overwrite)
+    typer.echo(f"exported {res.images} image(s) of {session} as {layout} to {out} ({len(res.files)} files)")

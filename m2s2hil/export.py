@@ -1,0 +1,255 @@
+"""Export a session in the published M2S2 layout or as a Hugging Face image folder.
+
+``layout="m2s2"`` writes, under ``out``:
+
+- ``HIL/<Satellite>/b<N>/e<N>/<all|dir|solo>_<k>.png``: the raw mosaic as an 8-bit PNG
+  with three identical channels, exactly like the release. 10 → 8 bits is
+  ``raw >> (bit_depth - 8)`` (for the TOUCAN: ``>> 2``, i.e. floor(DN / 4); nothing is
+  rounded up, so 1023 → 255 and the mapping never overflows).
+- ``HIL16/<same path>``: the same mosaic losslessly, a 16-bit single-channel PNG holding
+  the sensor's DN unchanged (0..1023 for 10 bits; not rescaled).
+- ``metadata/<session_id>.csv``: one row per image (pose commanded and read back,
+  exposure, gain, lighting, temperature, dark id, sha256 of the raw TIFF, ...).
+- ``metadata/<session_id>.json``: what the release lacks: band centres, FWHM, the 4×4
+  mosaic layout (band index per position, 0-based), bit depth, the 8-bit mapping, the
+  sweep, rig digest, software version, and the master darks (``metadata/<session_id>/``).
+
+``k`` is the capture index within its folder: the azimuth index (0..35 for 10° steps,
+azimuth = start + k·step), plus ``n_azimuths · f`` for the f-th extra frame at a pose
+(so with one frame per pose k is exactly the azimuth index). The paper does not define
+the index (its 3,024 HIL images do not factor into 36 azimuths × 81 folders), so the
+CSV carries the azimuth explicitly.
+
+``layout="hf"`` writes ``out/train/<Satellite>_b<N>_e<N>_<light>_<k>.png`` (the lossless
+16-bit mosaic) with ``out/train/metadata.csv`` (``file_name`` + the same columns), which
+``datasets.load_dataset("imagefolder", data_dir=out)`` loads; exporting more sessions
+into the same folder merges their rows.
+
+Existing files are never overwritten unless ``overwrite=True`` (checked before anything
+is written). Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from m2s2hil.atomic import write_bytes_atomic, write_text_atomic
+from m2s2hil.catalog import load_catalog
+from m2s2hil.errors import UsageError
+from m2s2hil.frame_files import decode_tiff, encode_png
+from m2s2hil.store import FrameRecord, SessionStore
+
+Layout = Literal["m2s2", "hf"]
+LAYOUTS = ("m2s2", "hf")
+
+CSV_COLUMNS = (
+    "session_id", "event_id", "satellite", "build", "elevation", "lighting", "lighting_dataset", "k",
+    "azimuth_index", "frame", "nominal_azimuth_deg", "azimuth_deg", "turntable_readback_deg", "tilt_deg",
+    "tilt_readback_deg", "exposure_s", "gain", "temperature_c", "dark_id", "timestamp", "bit_depth",
+    "processing_method", "raw_sha256",
+)
+
+
+class ExportError(UsageError):
+    """An export that cannot be done (unknown layout, a file in the way, ...)."""
+
+
+@dataclass
+class ExportResult:
+    layout: str
+    out: Path
+    images: int = 0
+    files: list[Path] = field(default_factory=list)
+
+
+def to_8bit(raw: np.ndarray, bit_depth: int) -> np.ndarray:
+    """The release's mapping: drop the low bits (``>> (bit_depth - 8)``)."""
+    shift = bit_depth - 8
+    if shift < 0:
+        raise ExportError(f"cannot map {bit_depth}-bit data to 8 bits by a shift")
+    return (raw >> shift).astype(np.uint8) if shift else raw.astype(np.uint8)
+
+
+def mosaic_png8(raw: np.ndarray, bit_depth: int) -> np.ndarray:
+    g = to_8bit(raw, bit_depth)
+    return np.dstack([g, g, g])
+
+
+def _k(ev: dict, n_az: int) -> int:
+    return int(ev["azimuth_index"]) + n_az * int(ev["frame"])
+
+
+def _pose(meta: dict, key: str) -> Any:
+    pose = meta.get("pose")
+    return pose.get(key, "") if isinstance(pose, dict) else ""
+
+
+def _row(store: SessionStore, fr: FrameRecord, n_az: int) -> dict[str, Any]:
+    cat = load_catalog()
+    ev = fr.meta["event"]
+    m = fr.meta
+    return {
+        "session_id": store.session_id,
+        "event_id": fr.event_id,
+        "satellite": cat.satellites[store.sweep.satellite].name,
+        "build": store.sweep.build,
+        "elevation": ev["elevation"],
+        "lighting": ev["lighting"],
+        "lighting_dataset": cat.lighting[ev["lighting"]].dataset,
+        "k": _k(ev, n_az),
+        "azimuth_index": ev["azimuth_index"],
+        "frame": ev["frame"],
+        "nominal_azimuth_deg": ev["nominal_azimuth_deg"],
+        "azimuth_deg": ev["azimuth_deg"],
+        "turntable_readback_deg": _pose(m, "turntable_deg"),
+        "tilt_deg": ev["tilt_deg"],
+        "tilt_readback_deg": _pose(m, "tilt_deg"),
+        "exposure_s": m.get("exposure_s", ev["exposure_s"]),
+        "gain": m.get("gain", ev["gain"]),
+        "temperature_c": m.get("temperature_c", ""),
+        "dark_id": fr.dark_id or "",
+        "timestamp": m.get("timestamp", fr.time),
+        "bit_depth": m.get("bit_depth", store.rig.camera.model.bit_depth),
+        "processing_method": m.get("processing_method", store.sweep.processing),
+        "raw_sha256": fr.files["raw"].sha256,
+    }
+
+
+def _csv(rows: list[dict], columns: tuple[str, ...]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({c: r.get(c, "") for c in columns})
+    return buf.getvalue()
+
+
+def camera_metadata(store: SessionStore) -> dict[str, Any]:
+    m = store.rig.camera.model
+    return {
+        "camera": m.name,
+        "width": m.width,
+        "height": m.height,
+        "bit_depth": m.bit_depth,
+        "pixel_pitch_um": m.pixel_pitch_um,
+        "bands_nm": list(m.bands_nm),
+        "fwhm_nm": list(m.fwhm_nm),
+        "mosaic_layout": [list(r) for r in m.layout],
+        "mosaic_layout_note": "band index (0-based into bands_nm) at each position of the repeating "
+                              f"{m.period}x{m.period} cell, row-major from the top-left pixel",
+        "png8_mapping": f"value8 = raw >> {m.bit_depth - 8} (floor); three identical channels",
+        "png16_mapping": "value16 = raw DN unchanged",
+    }
+
+
+def _session_json(store: SessionStore) -> dict[str, Any]:
+    cat = load_catalog()
+    return {
+        "session_id": store.session_id,
+        "satellite": cat.satellites[store.sweep.satellite].name,
+        "build": store.sweep.build,
+        "state": store.state,
+        "software_version": store.software_version,
+        "rig_digest": store.rig_digest,
+        **camera_metadata(store),
+        "lighting": {k: {"dataset": v.dataset, "description": v.description,
+                         "lamps": list(store.rig.lighting.get(k, ()))}
+                     for k, v in cat.lighting.items()},
+        "elevations_deg": dict(store.rig.elevations),
+        "sweep": store.sweep.model_dump(mode="json"),
+        "darks": [{"dark_id": d.dark_id, "exposure_s": d.exposure_s, "gain": d.gain,
+                   "n_frames": d.n_frames, "reduce": d.reduce, "sha256": d.files["master"].sha256,
+                   "file": f"{store.session_id}/{Path(d.files['master'].path).name}"}
+                  for d in store.darks()],
+        "skips": [s.model_dump() for s in store.skips()],
+    }
+
+
+def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *,
+                   overwrite: bool = False) -> ExportResult:
+    """Export every committed frame of ``store`` (see the module docstring)."""
+    if layout not in LAYOUTS:
+        raise ExportError(f"unknown export layout {layout!r}; known: {', '.join(LAYOUTS)}")
+    out = Path(out)
+    frames = store.frames()
+    if not frames:
+        raise ExportError(f"session {store.session_id} has no frames to export")
+    cat = load_catalog()
+    sat_name = cat.satellites[store.sweep.satellite].name
+    b = f"b{int(store.sweep.build[1:])}"
+    n_az = len(store.sweep.azimuths())
+    bits = store.rig.camera.model.bit_depth
+    rows = [_row(store, fr, n_az) for fr in frames]
+
+    def rel_name(r: dict) -> str:
+        return f"{r['lighting_dataset']}_{r['k']}.png"
+
+    if layout == "m2s2":
+        targets: list[tuple[Path, Path]] = []
+        for r in rows:
+            sub = Path(sat_name) / b / f"e{int(r['elevation'][1:])}" / rel_name(r)
+            targets.append((out / "HIL" / sub, out / "HIL16" / sub))
+            r["file"] = f"HIL/{sub.as_posix()}"
+            r["file16"] = f"HIL16/{sub.as_posix()}"
+        meta_csv = out / "metadata" / f"{store.session_id}.csv"
+        meta_json = out / "metadata" / f"{store.session_id}.json"
+        planned = [p for t in targets for p in t] + [meta_csv, meta_json]
+    else:
+        targets = []
+        for r in rows:
+            name = f"{sat_name}_{b}_e{int(r['elevation'][1:])}_{rel_name(r)}"
+            targets.append((out / "train" / name, out / "train" / name))
+            r["file_name"] = name
+        meta_csv = out / "train" / "metadata.csv"
+        meta_json = out / "metadata" / f"{store.session_id}.json"
+        planned = [t[0] for t in targets] + [meta_json]
+    if not overwrite:
+        clash = [p for p in planned if p.exists()]
+        if clash:
+            raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
+                              "use overwrite to replace them")
+
+    result = ExportResult(layout=layout, out=out)
+    for fr, (p8, p16) in zip(frames, targets, strict=True):
+        raw, _ = decode_tiff(store.read_file(fr.files["raw"]))
+        if layout == "m2s2":
+            write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))
+            write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
+            result.files += [p8, p16]
+        else:
+            write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
+            result.files.append(p16)
+        result.images += 1
+
+    info = _session_json(store)
+    dark_dir = out / "metadata" / store.session_id
+    for d in store.darks():
+        dst = dark_dir / Path(d.files["master"].path).name
+        write_bytes_atomic(dst, store.read_file(d.files["master"]))
+        result.files.append(dst)
+    write_text_atomic(meta_json, json.dumps(info, indent=2, sort_keys=True) + "\n")
+    result.files.append(meta_json)
+
+    if layout == "m2s2":
+        cols = ("file", "file16", *CSV_COLUMNS)
+        write_text_atomic(meta_csv, _csv(rows, cols))
+    else:
+        cols = ("file_name", *CSV_COLUMNS)
+        merged: dict[str, dict] = {}
+        if meta_csv.exists():
+            with meta_csv.open(newline="") as f:
+                for r in csv.DictReader(f):
+                    merged[r["file_name"]] = r
+        for r in rows:
+            merged[r["file_name"]] = r
+        write_text_atomic(meta_csv, _csv([merged[k] for k in sorted(merged)], cols))
+    result.files.append(meta_csv)
+    store.record_event("export", {"layout": layout, "out": str(out), "images": result.images})
+    return result

@@ -1,0 +1,158 @@
+"""Encoding and decoding of the session's image files (in memory, so they can be hashed and
+written atomically).
+
+- Raw mosaic: 2-D uint16 TIFF, the sensor's digital numbers unchanged, metadata as JSON
+  in the ImageDescription tag.
+- Cube: one TIFF page per band, shape (bands, height, width), in the dtype processing
+  produced: float32 (default; demosaicing averages and interpolates, so integers would
+  round away information) or uint16. float64 is stored as float32. Metadata as JSON.
+- Master dark: 2-D float32 TIFF (the mean/median of N frames keeps its fraction: that is
+  where the √N noise gain lives).
+- Preview and exported mosaics: PNG through OpenCV (8-bit gray/RGB, 16-bit gray).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+import tifffile
+
+from m2s2hil.errors import UsageError
+
+
+class InvalidImage(UsageError):
+    """An array that does not fit the file it is meant for (dtype, shape)."""
+
+
+def json_default(o: Any) -> Any:
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, set | frozenset):
+        return sorted(o)
+    if hasattr(o, "model_dump"):
+        return o.model_dump(mode="json")
+    return str(o)
+
+
+def _finite(o: Any) -> Any:
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_finite(v) for v in o]
+    return o
+
+
+def dumps(obj: Any) -> str:
+    """Strict JSON (NaN and infinities become null, numpy scalars plain numbers)."""
+    try:
+        return json.dumps(obj, default=json_default, sort_keys=True, allow_nan=False)
+    except ValueError:
+        plain = json.loads(json.dumps(obj, default=json_default))
+        return json.dumps(_finite(plain), sort_keys=True, allow_nan=False)
+
+
+def _tiff(arr: np.ndarray, description: dict) -> bytes:
+    buf = io.BytesIO()
+    # metadata=None: the description is written verbatim (no tifffile shape JSON).
+    tifffile.imwrite(buf, arr, description=dumps(description), metadata=None, photometric="minisblack")
+    return buf.getvalue()
+
+
+def encode_tiff(arr: np.ndarray, description: dict) -> bytes:
+    """Any numeric array as TIFF, dtype kept."""
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "buif":
+        raise InvalidImage(f"TIFF needs a numeric array, got {_desc(arr)}")
+    return _tiff(np.ascontiguousarray(arr), description)
+
+
+def encode_raw(raw: np.ndarray, description: dict, shape: tuple[int, int] | None = None) -> bytes:
+    if not isinstance(raw, np.ndarray) or raw.dtype != np.uint16 or raw.ndim != 2:
+        raise InvalidImage(f"raw mosaic must be a 2-D uint16 array, got {_desc(raw)}")
+    if shape is not None and raw.shape != shape:
+        raise InvalidImage(f"raw mosaic is {raw.shape[0]}x{raw.shape[1]}, the camera gives "
+                           f"{shape[0]}x{shape[1]} (height x width)")
+    return _tiff(np.ascontiguousarray(raw), description)
+
+
+def normalise_cube(cube: np.ndarray, n_bands: int) -> np.ndarray:
+    """(bands, H, W) in float32 or uint16; (H, W, bands) is transposed."""
+    if not isinstance(cube, np.ndarray) or cube.ndim != 3:
+        raise InvalidImage(f"cube must be a 3-D array, got {_desc(cube)}")
+    if cube.shape[0] != n_bands:
+        if cube.shape[2] != n_bands:
+            raise InvalidImage(f"cube {cube.shape} has no axis of {n_bands} bands")
+        cube = np.moveaxis(cube, 2, 0)
+    if cube.dtype == np.float64:
+        cube = cube.astype(np.float32)
+    if cube.dtype not in (np.float32, np.uint16):
+        raise InvalidImage(f"cube dtype must be float32 or uint16, got {cube.dtype}")
+    return np.ascontiguousarray(cube)
+
+
+def encode_cube(cube: np.ndarray, description: dict, n_bands: int) -> bytes:
+    return _tiff(normalise_cube(cube, n_bands), description)
+
+
+def encode_dark(master: np.ndarray, description: dict, shape: tuple[int, int] | None = None) -> bytes:
+    if not isinstance(master, np.ndarray) or master.ndim != 2 or master.dtype.kind not in "uif":
+        raise InvalidImage(f"master dark must be a 2-D numeric array, got {_desc(master)}")
+    if shape is not None and master.shape != shape:
+        raise InvalidImage(f"master dark is {master.shape}, the camera gives {shape}")
+    return _tiff(np.ascontiguousarray(master, dtype=np.float32), description)
+
+
+def encode_png(img: np.ndarray) -> bytes:
+    """8-bit gray or RGB (H, W, 3), or 16-bit gray, to PNG bytes."""
+    if not isinstance(img, np.ndarray):
+        raise InvalidImage(f"image must be an array, got {_desc(img)}")
+    if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    elif not ((img.dtype in (np.uint8, np.uint16)) and img.ndim == 2):
+        raise InvalidImage(f"PNG needs uint8 gray/RGB or uint16 gray, got {_desc(img)}")
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise InvalidImage("OpenCV could not encode the PNG")
+    return buf.tobytes()
+
+
+def decode_png(data: bytes) -> np.ndarray:
+    """PNG bytes to an array as stored (RGB order for colour); InvalidImage if unreadable."""
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise InvalidImage("not a readable PNG")
+    if arr.ndim == 3 and arr.shape[2] == 3:
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGR2RGB)
+    elif arr.ndim == 3 and arr.shape[2] == 4:
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2RGBA)
+    return arr
+
+
+def decode_tiff(data: bytes) -> tuple[np.ndarray, dict]:
+    """TIFF bytes to (array, description JSON); a non-JSON description gives {}."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tf:
+        arr = tf.asarray()
+        desc = tf.pages[0].description
+    try:
+        meta = json.loads(desc) if desc else {}
+    except json.JSONDecodeError:
+        meta = {}
+    return arr, meta if isinstance(meta, dict) else {}
+
+
+def _desc(x: Any) -> str:
+    if isinstance(x, np.ndarray):
+        return f"{x.dtype} array of shape {x.shape}"
+    return type(x).__name__
