@@ -87,8 +87,15 @@ def build_simulators(
 
         cat = load_catalog()
         model = config.camera.model
+        from m2s2hil.simulators.sensor import sensor_params_from
+
+        try:
+            sensor = sensor_params_from(dict(sim_cfg.get("sensor", {}))) if "sensor" in sim_cfg else None
+        except (KeyError, ValueError) as exc:
+            raise ConfigError("rig", "simulation.sensor", str(exc).strip("'\"")) from None
         frame_source = SimFrameSource(
-            world, model, lambda sat, build: list(cat.build(sat, build).materials), seed=seed
+            world, model, lambda sat, build: list(cat.build(sat, build).materials), seed=seed,
+            sensor_params=sensor,
         )
         sims[cam_reg or "toucan"] = ToucanCamera(
             clock=clock,
