@@ -20,11 +20,12 @@ app = typer.Typer(
 
 
 def _register() -> None:
-    from m2s2hil.commands import export, importer, rig, sim, sim_serve
+    from m2s2hil.commands import export, importer, rig, sessions, sim, sim_serve
 
     sim.app.command("serve")(sim_serve.serve)
     app.add_typer(sim.app, name="sim")
     app.add_typer(rig.app, name="rig")
+    app.add_typer(sessions.app, name="sessions")
     app.command("export")(export.export_cmd)
     app.command("import")(importer.import_cmd)
 

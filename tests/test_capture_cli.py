@@ -1,0 +1,86 @@
+"""The operator CLI as a user runs it: `capture ...` in a subprocess."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import pytest
+
+from m2s2hil.store import SessionStore, list_sessions
+
+
+def small_rig(tmp_path: Path) -> Path:
+    text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
+    text = text.replace("width = 2048", "width = 256").replace("height = 2048", "height = 256")
+    assert "width = 256" in text
+    p = tmp_path / "small_rig.toml"
+    p.write_text(text)
+    tomllib.loads(p.read_text())
+    return p
+
+
+def capture(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    code = "import sys; from m2s2hil.cli import capture_main; sys.argv[0] = 'capture'; capture_main()"
+    cmd = [sys.executable, "-c", code, *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--sat", "hubbel", "--build", "B2", "--light", "weak"], "unknown satellite 'hubbel'"),
+        (["--sat", "hubble", "--build", "B4", "--light", "weak"], "unknown build of Hubble 'B4'"),
+        (["--sat", "hubble", "--build", "B2", "--light", "dim"], "unknown lighting condition 'dim'"),
+        (["--sat", "hubble", "--build", "B2", "--light", "weak", "--tilt", "E9"], "unknown elevation 'E9'"),
+        (["--sat", "hubble", "--build", "B2"], "--light are required"),
+        (["--sat", "hubble", "--build", "B2", "--light", "weak", "--mode", "spin"], "--mode must be"),
+        (["--sat", "hubble", "--build", "B2", "--light", "weak", "--method", "magic"],
+         "unknown processing method"),
+    ],
+)
+def test_bad_input_exit_2(args, needle):
+    res = capture(*args, "--dry-run")
+    assert res.returncode == 2, res.stderr
+    assert needle in res.stderr
+
+
+def test_malformed_rig_file_exit_2(tmp_path):
+    bad = tmp_path / "rig.toml"
+    bad.write_text("[axes.turntable]\ndevice = 'stage'\n")
+    res = capture("--sat", "hubble", "--build", "B2", "--light", "weak", "--rig", str(bad), "--dry-run")
+    assert res.returncode == 2
+    assert str(bad) in res.stderr
+
+
+def test_dry_run_prints_plan_and_estimate():
+    res = capture("--sat", "hubble", "--build", "B2", "--light", "all", "--dry-run")
+    assert res.returncode == 0, res.stderr
+    assert "324" in res.stdout  # 36 azimuths x 3 tilts x 3 lights
+    assert "lower bound" in res.stdout
+    assert "built-in simulated rig" in res.stderr
+
+
+def test_capture_runs_a_complete_checksummed_session(tmp_path):
+    rig = small_rig(tmp_path)
+    out = tmp_path / "data"
+    res = capture(
+        "--sat", "voyager", "--build", "B2", "--light", "weak,directional", "--tilt", "E1",
+        "--azimuth-step", "90", "--rig", str(rig), "--out", str(out),
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    (info,) = list_sessions(out)
+    assert info.state == "completed"
+    store = SessionStore.open(out, info.session_id)
+    try:
+        assert store.verify() == []
+        frames = store.frames()
+        assert len(frames) == 2 * 4
+        assert {f.meta["lighting"] if "lighting" in f.meta else f.event_id.split("/")[0] for f in frames} == {
+            "weak", "directional"
+        }
+    finally:
+        store.close()
