@@ -1,0 +1,583 @@
+"""Driver for a GRBL 1.1 controller carrying rotary axes (turntable, tilt stage).
+
+One :class:`GrblController` owns the serial port; :meth:`GrblController.axis` hands
+out :class:`GrblAxis` objects (``RotaryAxis``) that share it. Lines are sent one at a
+time and each waits for its ``ok``/``error``; a :class:`CharacterCounter` still keeps
+the books, so a reply that arrives late after a timeout retires the right line instead
+of being mistaken for the next one (GRBL replies carry no ids, only their order).
+
+Error mapping (every error names device, command and attempt):
+``error:N`` → CommandRejected(code=GrblError); ``ALARM:N`` → StageAlarm(code=GrblAlarm);
+no reply in time → DeviceTimeout; a garbled or unexpected reply → ProtocolError;
+the port vanished → DeviceGone (then :meth:`GrblController.reconnect`).
+Idempotent queries (``?``, ``$I``, ``$$``, soft reset) are retried ``retries`` times
+after a timeout or a garbled reply; motion commands never are.
+
+After ``ALARM:1``/``ALARM:2`` GRBL ignores everything but a soft reset, so the driver
+refuses commands with StageAlarm until :meth:`GrblController.clear_alarm`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TypeVar
+
+from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
+from m2s2hil.drivers.errors import (
+    CommandRejected,
+    DeviceGone,
+    DeviceTimeout,
+    MoveNotVerified,
+    ProtocolError,
+    SoftLimitError,
+    StageAlarm,
+)
+from m2s2hil.drivers.serial_link import SerialLink
+from m2s2hil.protocols.grbl import (
+    AXES,
+    BUILD_INFO,
+    CRITICAL_ALARMS,
+    HOME,
+    SETTINGS,
+    UNLOCK,
+    Alarm,
+    Banner,
+    BuildInfo,
+    BuildOptions,
+    CharacterCounter,
+    Error,
+    Event,
+    GrblAlarm,
+    GrblError,
+    GrblReceiver,
+    Message,
+    Ok,
+    ProtocolViolation,
+    Realtime,
+    Setting,
+    StatusReport,
+    encode_line,
+    jog_line,
+    move_line,
+)
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class ReconnectReport:
+    reset: bool  # the controller restarted (lost power): position lost, home again
+    status: StatusReport
+
+
+def _name(code: object) -> str:
+    return getattr(code, "name", "unknown")
+
+
+class GrblController:
+    def __init__(
+        self,
+        url: str,
+        *,
+        device: str = "stage",
+        baudrate: int = 115200,
+        timeout_s: float = 1.0,
+        clock: Clock = SYSTEM_CLOCK,
+        retries: int = 2,
+        poll_interval_s: float = 0.05,
+        homing_timeout_s: float = 120.0,
+    ) -> None:
+        self.device = device
+        self.clock = clock
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.poll_interval_s = poll_interval_s
+        self.homing_timeout_s = homing_timeout_s
+        self.link = SerialLink(url, device=device, baudrate=baudrate, timeout_s=timeout_s, clock=clock)
+        self._rx = GrblReceiver()
+        self._counter = CharacterCounter()
+        self._events: deque[Event] = deque()
+        self._axes: dict[str, GrblAxis] = {}
+        self._wco: tuple[float, ...] | None = None
+        self.settings: dict[int, float] = {}
+        self.version: str | None = None
+        self.critical = False  # halted after a hard/soft limit until a soft reset
+        self.last_alarm: GrblAlarm | int | None = None
+        self.restarts = 0  # banners seen that the driver did not ask for
+        self.messages: deque[str] = deque(maxlen=50)
+
+    # -- connection ------------------------------------------------------------------
+    def connect(self, *, reset: bool = True) -> StatusReport:
+        """Open the port, soft-reset (or just wake with an empty line), check the
+        firmware is GRBL 1.1 and read its settings."""
+        self.link.open()
+        self._forget()
+        if reset:
+            self.soft_reset()
+        else:
+            self.command("", idempotent=True)  # an empty line is answered "ok"
+        info = self.command(BUILD_INFO, idempotent=True)
+        ver = next((e for e in info if isinstance(e, BuildInfo)), None)
+        if ver is None or not ver.version.startswith("1.1"):
+            found = ver.version if ver else "no [VER:] line"
+            raise ProtocolError(f"not GRBL 1.1 (found {found})", device=self.device, command=BUILD_INFO)
+        self.version = ver.version
+        opt = next((e for e in info if isinstance(e, BuildOptions)), None)
+        if opt is not None and opt.rx_buffer:
+            self._counter = CharacterCounter(opt.rx_buffer - 1)
+        self.read_settings()
+        return self.status()
+
+    def close(self) -> None:
+        self.link.close()
+
+    def reconnect(self, *, attempts: int = 10, interval_s: float = 0.5) -> ReconnectReport:
+        """Reopen a vanished port and re-synchronise; says whether the controller restarted."""
+        self.link.reconnect(attempts=attempts, interval_s=interval_s)
+        self._forget()
+        before = self.restarts
+        status = self.status()
+        report = ReconnectReport(reset=self.restarts > before, status=status)
+        log.warning(
+            "%s: reconnected (%s)", self.device, "controller restarted" if report.reset else "no reset"
+        )
+        return report
+
+    def _forget(self) -> None:
+        self._rx.clear()
+        self._events.clear()
+        self._counter.reset()
+
+    # -- axes ------------------------------------------------------------------------
+    def axis(
+        self,
+        letter: str,
+        *,
+        name: str,
+        units_per_degree: float,
+        min_deg: float,
+        max_deg: float,
+        max_speed_dps: float,
+        accel_dps2: float,
+        tolerance_deg: float,
+        settle_s: float = 0.0,
+    ) -> GrblAxis:
+        letter = letter.upper()
+        if letter not in AXES:
+            raise ValueError(f"GRBL axis must be one of {', '.join(AXES)}, got {letter!r}")
+        if letter in self._axes:
+            raise ValueError(f"axis {letter} already belongs to {self._axes[letter].name!r}")
+        ax = GrblAxis(
+            self,
+            letter,
+            name=name,
+            units_per_degree=units_per_degree,
+            min_deg=min_deg,
+            max_deg=max_deg,
+            max_speed_dps=max_speed_dps,
+            accel_dps2=accel_dps2,
+            tolerance_deg=tolerance_deg,
+            settle_s=settle_s,
+        )
+        self._axes[letter] = ax
+        return ax
+
+    # -- commands --------------------------------------------------------------------
+    def command(self, text: str, *, idempotent: bool = False, timeout: float | None = None) -> list[Event]:
+        """Send one line and wait for its ok; returns the lines that came before it."""
+        data = encode_line(text)
+        if idempotent:
+            return self._retry(text, lambda attempt: self._command_once(data, text, timeout, attempt))
+        return self._command_once(data, text, timeout, 1)
+
+    def status(self) -> StatusReport:
+        return self._retry("?", self._status_once)
+
+    def read_settings(self) -> dict[int, float]:
+        events = self.command(SETTINGS, idempotent=True)
+        self.settings = {e.number: e.value for e in events if isinstance(e, Setting)}
+        return self.settings
+
+    def soft_reset(self) -> Banner:
+        """0x18: stops everything, flushes GRBL's buffers; ALARM:3 if it was moving."""
+        return self._retry("soft reset", self._reset_once)
+
+    def home(self) -> StatusReport:
+        """``$H``: homes every axis that has a switch (GRBL homes them all in one cycle)."""
+        self.command(HOME, timeout=self.homing_timeout_s)
+        return self.status()
+
+    def unlock(self) -> None:
+        self.command(UNLOCK)
+
+    def clear_alarm(self, *, home: bool = False) -> StatusReport:
+        """Soft reset, then ``$H`` (position re-established) or ``$X`` (trust it)."""
+        self.soft_reset()
+        if home:
+            return self.home()
+        self.unlock()
+        return self.status()
+
+    def realtime(self, byte: bytes) -> None:
+        self.link.write(byte, command=f"realtime {byte!r}")
+
+    def wait_until_idle(self, timeout: float) -> StatusReport:
+        """Poll ``?`` through the clock until Idle; StageAlarm on Alarm, DeviceTimeout if late."""
+        deadline = self.clock.monotonic() + timeout
+        while True:
+            st = self.status()
+            if st.state == "Idle":
+                return st
+            if st.state == "Alarm":
+                raise StageAlarm(
+                    "controller in Alarm state", code=self.last_alarm, device=self.device, command="?"
+                )
+            remaining = deadline - self.clock.monotonic()
+            if remaining <= 0:
+                raise DeviceTimeout(
+                    f"still {st.state_text} after {timeout:.3g} s", device=self.device, command="?"
+                )
+            self.clock.sleep(min(self.poll_interval_s, remaining))
+
+    def stop(self) -> StatusReport | None:
+        """Stop all motion without losing position.
+
+        A jog is cancelled (0x85, decelerates and flushes the jog); a G-code move is
+        feed-held (``!``) and once it stands (Hold:0) a soft reset flushes the rest of
+        the planner (no alarm, position kept); homing can only be reset (ALARM:6).
+        A controller halted by a limit alarm is already stopped: returns None.
+        """
+        if self.critical:
+            return None
+        st = self.status()
+        limit = self.timeout_s * 10
+        if st.state == "Jog":
+            self.realtime(Realtime.JOG_CANCEL)
+            return self.wait_until_idle(limit)
+        if st.state in ("Run", "Hold"):
+            self.realtime(Realtime.FEED_HOLD)
+            deadline = self.clock.monotonic() + limit
+            while not (st.state == "Hold" and st.substate == 0) and st.state != "Idle":
+                if self.clock.monotonic() > deadline:
+                    raise DeviceTimeout("feed hold did not complete", device=self.device, command="!")
+                self.clock.sleep(self.poll_interval_s)
+                st = self.status()
+            self.soft_reset()
+        elif st.state == "Home":
+            self.soft_reset()
+        return self.status()
+
+    def axis_position(self, letter: str) -> float:
+        st = self.status()
+        pos = st.machine_position(self._wco)
+        if pos is None:
+            raise ProtocolError("status report without a usable position", device=self.device, command="?")
+        return pos[AXES.index(letter)]
+
+    # -- exchanges -------------------------------------------------------------------
+    def _retry(self, what: str, once: Callable[[int], T]) -> T:
+        attempt = 1
+        while True:
+            try:
+                return once(attempt)
+            except (DeviceTimeout, ProtocolError) as exc:
+                if attempt > self.retries:
+                    raise
+                log.warning("%s: %s; retrying %s", self.device, exc, what)
+                attempt += 1
+
+    def _check_critical(self, command: str) -> None:
+        if self.critical:
+            raise StageAlarm(
+                f"controller halted after ALARM:{int(self.last_alarm or 0)} ({_name(self.last_alarm)}); "
+                "it ignores everything until a soft reset: call clear_alarm()",
+                code=self.last_alarm,
+                device=self.device,
+                command=command,
+            )
+
+    def _next_event(self, deadline: float, command: str, attempt: int) -> Event:
+        while not self._events:
+            remaining = deadline - self.clock.monotonic()
+            try:
+                if remaining <= 0:
+                    raise DeviceTimeout("no reply", device=self.device, command=command)
+                line = self.link.read_until(b"\n", timeout=remaining, command=command)
+            except DeviceTimeout as exc:
+                # Whatever partial line is buffered is garbage now: drop it.
+                self.link.drain_input()
+                self._rx.clear()
+                raise DeviceTimeout(
+                    exc.detail, device=self.device, command=command, attempt=attempt
+                ) from None
+            self._events.extend(self._rx.feed(line))
+        return self._events.popleft()
+
+    def _drain_pending(self, command: str) -> None:
+        """Deal with whatever arrived unasked (late replies, alarms, a restart)."""
+        self._events.extend(self._rx.feed(self.link.read_available(command=command)))
+        while self._events:
+            self._handle_async(self._events.popleft(), command, 1)
+
+    def _handle_async(self, ev: Event, command: str, attempt: int) -> None:
+        if isinstance(ev, Ok | Error):
+            if self._counter.in_flight:
+                self._counter.acknowledged()  # the late reply of a line given up on
+        elif isinstance(ev, Alarm):
+            self._on_alarm(ev, command, attempt)
+        elif isinstance(ev, Banner):
+            self.restarts += 1
+            self._counter.reset()
+            self.critical = False
+            log.warning("%s: controller restarted (banner Grbl %s)", self.device, ev.version)
+        elif isinstance(ev, Message):
+            self.messages.append(ev.text)
+        elif isinstance(ev, ProtocolViolation):
+            log.warning("%s: discarded garbage %r (%s)", self.device, ev.line, ev.reason)
+        elif isinstance(ev, StatusReport) and ev.wco is not None:
+            self._wco = ev.wco
+
+    def _on_alarm(self, ev: Alarm, command: str, attempt: int) -> None:
+        self.last_alarm = ev.code
+        self._counter.reset()  # GRBL answers none of the lines it still held
+        if ev.code in CRITICAL_ALARMS:
+            self.critical = True
+        raise StageAlarm(
+            f"ALARM:{int(ev.code)} ({_name(ev.code)})",
+            code=ev.code,
+            device=self.device,
+            command=command,
+            attempt=attempt,
+        )
+
+    def _settle(self, command: str) -> None:
+        """Wait for replies still owed to lines given up on; declare them lost after a timeout."""
+        deadline = self.clock.monotonic() + self.timeout_s
+        while self._counter.in_flight:
+            try:
+                ev = self._next_event(deadline, command, 1)
+            except DeviceTimeout:
+                log.warning("%s: %d reply(ies) never came", self.device, self._counter.in_flight)
+                self._counter.reset()
+                return
+            if isinstance(ev, ProtocolViolation):
+                self._counter.acknowledged()
+            else:
+                self._handle_async(ev, command, 1)
+
+    def _quiesce(self, command: str) -> None:
+        """Discard input until the line has been quiet for a moment, then forget all debts."""
+        quiet = min(0.1, self.timeout_s / 4)
+        end = self.clock.monotonic() + self.timeout_s
+        while self.clock.monotonic() < end:
+            try:
+                self.link.read_until(b"\n", timeout=quiet, command=command)
+            except DeviceTimeout:
+                break
+        self.link.drain_input()
+        self._forget()
+
+    def _command_once(self, data: bytes, text: str, timeout: float | None, attempt: int) -> list[Event]:
+        self._check_critical(text)
+        self._drain_pending(text)
+        if self._counter.in_flight:
+            self._settle(text)
+        self._counter.sent(data)
+        try:
+            self.link.write(data, command=text)
+        except DeviceGone:
+            self._counter.reset()
+            raise
+        deadline = self.clock.monotonic() + (self.timeout_s if timeout is None else timeout)
+        collected: list[Event] = []
+        while True:
+            ev = self._next_event(deadline, text, attempt)
+            if isinstance(ev, Ok):
+                self._counter.acknowledged()
+                return collected
+            if isinstance(ev, Error):
+                self._counter.acknowledged()
+                raise CommandRejected(
+                    f"error:{int(ev.code)} ({_name(ev.code)})",
+                    code=ev.code,
+                    device=self.device,
+                    command=text,
+                    attempt=attempt,
+                )
+            if isinstance(ev, ProtocolViolation):
+                # Was it our ok, or one line of a longer answer? Unknowable: let the
+                # rest of the answer pass, then start afresh.
+                self._quiesce(text)
+                raise ProtocolError(
+                    f"garbled reply {ev.line!r} ({ev.reason})",
+                    device=self.device,
+                    command=text,
+                    attempt=attempt,
+                )
+            if isinstance(ev, Banner):
+                self._handle_async(ev, text, attempt)
+                raise ProtocolError(
+                    "controller restarted before answering", device=self.device, command=text, attempt=attempt
+                )
+            if isinstance(ev, Alarm):
+                self._on_alarm(ev, text, attempt)
+            if isinstance(ev, StatusReport):
+                continue  # the late answer to an earlier '?'
+            if isinstance(ev, Message):
+                self.messages.append(ev.text)
+            collected.append(ev)
+
+    def _status_once(self, attempt: int) -> StatusReport:
+        self._check_critical("?")
+        self._drain_pending("?")
+        self.link.write(Realtime.STATUS, command="?")
+        deadline = self.clock.monotonic() + self.timeout_s
+        while True:
+            ev = self._next_event(deadline, "?", attempt)
+            if isinstance(ev, StatusReport):
+                if ev.wco is not None:
+                    self._wco = ev.wco
+                return ev
+            if isinstance(ev, ProtocolViolation):
+                raise ProtocolError(
+                    f"garbled status {ev.line!r} ({ev.reason})",
+                    device=self.device,
+                    command="?",
+                    attempt=attempt,
+                )
+            self._handle_async(ev, "?", attempt)
+
+    def _reset_once(self, attempt: int) -> Banner:
+        self.link.drain_input()
+        self._forget()
+        self.link.write(Realtime.SOFT_RESET, command="soft reset")
+        self.critical = False
+        deadline = self.clock.monotonic() + self.timeout_s
+        while True:
+            ev = self._next_event(deadline, "soft reset", attempt)
+            if isinstance(ev, Banner):
+                self._drain_pending("soft reset")  # the unlock message usually follows
+                return ev
+            if isinstance(ev, Alarm):
+                self.last_alarm = ev.code  # ALARM:3/6: it was moving when reset
+                log.warning("%s: reset while moving: ALARM:%d", self.device, int(ev.code))
+
+
+class GrblAxis:
+    """One rotary axis of a GRBL controller, in degrees (``units_per_degree`` machine
+    units per degree). Moves use machine coordinates (G53), so work offsets never
+    shift the angle."""
+
+    def __init__(
+        self,
+        controller: GrblController,
+        letter: str,
+        *,
+        name: str,
+        units_per_degree: float,
+        min_deg: float,
+        max_deg: float,
+        max_speed_dps: float,
+        accel_dps2: float,
+        tolerance_deg: float,
+        settle_s: float = 0.0,
+    ) -> None:
+        if units_per_degree <= 0 or max_speed_dps <= 0 or accel_dps2 <= 0 or tolerance_deg <= 0:
+            raise ValueError(f"{name}: units, speed, acceleration and tolerance must be positive")
+        if not min_deg < max_deg:
+            raise ValueError(f"{name}: min_deg {min_deg} must be below max_deg {max_deg}")
+        self.ctl = controller
+        self.letter = letter
+        self.name = name
+        self.units_per_degree = units_per_degree
+        self.min_deg, self.max_deg = min_deg, max_deg
+        self.max_speed_dps, self.accel_dps2 = max_speed_dps, accel_dps2
+        self.tolerance_deg = tolerance_deg
+        self.settle_s = settle_s
+
+    def _check(self, degrees: float, what: str) -> None:
+        if not (self.min_deg <= degrees <= self.max_deg):
+            raise SoftLimitError(
+                f"{self.name}: {what} {degrees:g}° outside [{self.min_deg:g}, {self.max_deg:g}]°",
+                device=self.ctl.device,
+            )
+
+    def _feed(self, dps: float) -> float:
+        return dps * self.units_per_degree * 60.0
+
+    def _move_timeout(self, distance_deg: float) -> float:
+        """Generous bound on a move's duration, using the firmware's limits when known."""
+        i = AXES.index(self.letter)
+        v = self.max_speed_dps
+        a = self.accel_dps2
+        if self.ctl.settings:
+            v = min(v, self.ctl.settings.get(110 + i, v * 60) / 60.0 / self.units_per_degree)
+            a = min(a, self.ctl.settings.get(120 + i, a) / self.units_per_degree)
+        return 2.0 * (abs(distance_deg) / v + v / a) + 2.0 * self.ctl.timeout_s
+
+    def home(self) -> None:
+        self.ctl.home()
+
+    def move_to(self, degrees: float, *, wait: bool = True) -> float:
+        self._check(degrees, "target")
+        start = self.position() if wait else None
+        line = move_line(
+            {self.letter: degrees * self.units_per_degree}, feed=self._feed(self.max_speed_dps), machine=True
+        )
+        self.ctl.command(line)
+        if not wait:
+            return degrees
+        assert start is not None
+        self.wait_until_idle(self._move_timeout(degrees - start))
+        if self.settle_s:
+            self.ctl.clock.sleep(self.settle_s)
+        actual = self.position()
+        if abs(actual - degrees) > self.tolerance_deg:
+            raise MoveNotVerified(
+                f"{self.name}: at {actual:.4f}° after a move to {degrees:.4f}° "
+                f"(tolerance {self.tolerance_deg:g}°)",
+                target=degrees,
+                actual=actual,
+                device=self.ctl.device,
+                command=line,
+            )
+        return actual
+
+    def rotate(self, speed_dps: float, direction: int = +1) -> None:
+        """Continuous rotation: a jog towards the soft limit on that side; stop() ends it."""
+        if direction not in (1, -1):
+            raise ValueError(f"direction must be +1 or -1, got {direction}")
+        if not 0 < speed_dps <= self.max_speed_dps:
+            raise SoftLimitError(
+                f"{self.name}: speed {speed_dps:g}°/s outside (0, {self.max_speed_dps:g}]°/s",
+                device=self.ctl.device,
+            )
+        target = self.max_deg if direction > 0 else self.min_deg
+        line = jog_line(
+            {self.letter: target * self.units_per_degree}, feed=self._feed(speed_dps), machine=True
+        )
+        self.ctl.command(line)
+
+    def position(self) -> float:
+        return self.ctl.axis_position(self.letter) / self.units_per_degree
+
+    def stop(self) -> None:
+        self.ctl.stop()
+
+    def is_moving(self) -> bool:
+        return self.ctl.status().moving
+
+    def wait_until_idle(self, timeout: float) -> None:
+        self.ctl.wait_until_idle(timeout)
+
+    def close(self) -> None:
+        """Closes the shared controller (idempotent: every axis may call it)."""
+        self.ctl.close()
+
+
+# Codes worth importing together with the driver.
+__all__ = ["GrblAlarm", "GrblAxis", "GrblController", "GrblError", "ReconnectReport"]

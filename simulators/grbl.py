@@ -1,0 +1,594 @@
+"""A GRBL 1.1 motion controller as a simulated serial device.
+
+What it does as the firmware does (byte level, replies strictly in order):
+- real-time bytes (``?`` ``!`` ``~`` 0x18 0x85) act at once and never enter the
+  receive buffer; everything else goes into a 127-byte receive buffer. Bytes that
+  arrive with the buffer full are LOST, as on the firmware (counted in
+  :attr:`GrblSimulator.rx_overflow` so a test can see it).
+- lines are executed when they complete; motion lines go into a 15-block planner
+  and are answered ``ok`` when planned. With the planner full, lines wait in the
+  receive buffer, so character counting matters.
+- motion is a trapezoid per block (no junction blending: every block starts and ends
+  at rest), limited per axis by ``$110..$112`` (units/min) and ``$120..$122``
+  (units/s^2), computed from the clock: the position at time t, not stepped.
+- ``!`` decelerates to Hold:1 then Hold:0, ``~`` resumes (ignored until the hold is
+  complete); ``!`` during a jog and 0x85 cancel the jog.
+- 0x18 soft reset: ``ALARM:3`` first if it was moving (ALARM:6 while homing), then
+  the banner; the alarm state survives the reset.
+- ``$22=1`` boots locked in Alarm (HOMING_INIT_LOCK); ``$H`` homes, ``$X`` unlocks.
+- soft limits (``$20=1``, needs ``$22=1``): a G0/G1 target outside the travel gives
+  the critical ``ALARM:2`` (no ``ok`` for that line), a jog target ``error:15``. The
+  travel follows a HOMING_FORCE_SET_ORIGIN build: ``[-$13x, 0]``, or ``[0, $13x]``
+  for an axis whose ``$23`` direction bit is set.
+- after ``ALARM:1``/``ALARM:2`` ("Reset to continue") everything but 0x18 is ignored,
+  ``?`` included (GRBL 1.1's critical-event loop is empty).
+
+Simplifications: homing drives each homed axis straight to its switch (physical 0)
+at ``$25``, from either side, and sets MPos 0 there; no pull-off or locate phase.
+``$C``, ``$SLP``, arcs, dwell, offsets are not simulated (``error:3``/``error:20``).
+No banner at construction (a board that booted before the host opened the port);
+a vanished port is a power cycle: position is lost (MPos 0 where the axis stands),
+and the banner greets the host when the port comes back.
+
+Faults (``self.faults``): ``stall`` (``fraction``, default 0.5) stops the next move
+part-way and reports Idle there; ``alarm`` (``code`` default 1, ``at`` default 0.5 of
+the move) raises that alarm mid-move (during ``$H``: ALARM:9, then a reset).
+"""
+
+from __future__ import annotations
+
+import re
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from m2s2hil.protocols.grbl import (
+    AXES,
+    CRITICAL_ALARMS,
+    MSG_RESET_TO_CONTINUE,
+    MSG_UNLOCK,
+    MSG_UNLOCKED,
+    RX_BUFFER_SIZE,
+    RX_BUFFER_USABLE,
+    Alarm,
+    Banner,
+    BuildInfo,
+    BuildOptions,
+    DeviceLine,
+    DeviceLineSplitter,
+    Error,
+    Event,
+    Feedback,
+    GrblAlarm,
+    GrblError,
+    Message,
+    Ok,
+    Setting,
+    StartupBlock,
+    StatusReport,
+    format_event,
+    is_realtime,
+)
+from m2s2hil.simulators.device import SimDevice
+from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.grbl_gcode import GcodeError, Modal, parse_block
+from m2s2hil.simulators.motion_kit import InOrderReplies, Segment, Trapezoid
+
+PLANNER_BLOCKS = 15
+_SETTING_WRITE = re.compile(r"\$(\d+(?:\.\d*)?)=(.*)")
+
+
+@dataclass(frozen=True)
+class GrblAxisSettings:
+    max_rate: float = 3600.0  # $11x, units/min
+    accel: float = 120.0  # $12x, units/s^2
+    max_travel: float = 740.0  # $13x, units
+    homing: bool = True  # has a home switch and takes part in $H
+    start: float = 0.0  # physical position at power-up, units from the home switch
+
+
+BASE_SETTINGS: dict[int, float] = {
+    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
+    20: 0, 21: 0, 22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0,
+    30: 1000, 31: 0, 32: 0, 100: 250.0, 101: 250.0, 102: 250.0,
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Block:
+    target: tuple[float, ...]
+    feed: float | None  # units/min; None = rapid
+    kind: str  # "run" | "jog"
+
+
+class GrblSimulator(InOrderReplies, SimDevice):
+    def __init__(
+        self,
+        name: str,
+        clock: Any,
+        *,
+        axes: Mapping[str, GrblAxisSettings] | None = None,
+        settings: Mapping[int, float] | None = None,
+        faults: FaultPlan | None = None,
+        version: str = "1.1h",
+        build: str = "20190830",
+    ) -> None:
+        super().__init__(name, clock, faults)
+        axes = dict(axes or {})
+        unknown = set(axes) - set(AXES)
+        if unknown:
+            raise ValueError(f"GRBL has axes X, Y, Z; got {sorted(unknown)}")
+        per_axis = [axes.get(a, GrblAxisSettings()) for a in AXES]
+        self.settings: dict[int, float] = dict(BASE_SETTINGS)
+        for i, ax in enumerate(per_axis):
+            self.settings[110 + i] = ax.max_rate
+            self.settings[120 + i] = ax.accel
+            self.settings[130 + i] = ax.max_travel
+        self.settings.update(settings or {})
+        self._defaults = dict(self.settings)
+        self.homing_axes = tuple(ax.homing for ax in per_axis)
+        self.version, self.build = version, build
+        self.rx_overflow = 0  # bytes lost to a full receive buffer
+        self.build_text = ""
+        self.startup_blocks = {0: "", 1: ""}
+        self._offset = [ax.start for ax in per_axis]  # physical = MPos + offset
+        self._rest: tuple[float, ...] = (0.0, 0.0, 0.0)
+        self._state = "Alarm" if self.settings[22] else "Idle"
+        self._reset_volatile()
+
+    def _reset_volatile(self) -> None:
+        self._rx = bytearray()
+        self._splitter = DeviceLineSplitter()
+        self._queue: deque[_Block] = deque()
+        self._segment: Segment | None = None
+        self._current: _Block | None = None
+        self._pending_alarm: tuple[float, GrblAlarm] | None = None
+        self._modal = Modal()
+        self._critical = False
+        self._hold_done = False
+        self._wco_counter = 0
+        self._ov_counter = 0
+
+    # -- inspection (tests, the simulated world) -------------------------------------
+    def axis_position(self, letter: str) -> float:
+        """Where the axis physically is now, in machine units from its home switch."""
+        i = AXES.index(letter.upper())
+        with self.lock:
+            now = self.clock.monotonic()
+            self._advance(now)
+            return self._position(now)[i] + self._offset[i]
+
+    def machine_position(self) -> tuple[float, ...]:
+        """MPos as the controller would report it now."""
+        with self.lock:
+            now = self.clock.monotonic()
+            self._advance(now)
+            return self._position(now)
+
+    @property
+    def state(self) -> str:
+        with self.lock:
+            self._advance(self.clock.monotonic())
+            return self._state_text()
+
+    # -- SimDevice hooks -------------------------------------------------------------
+    def on_bytes(self, data: bytes) -> None:
+        now = self.clock.monotonic()
+        self._advance(now)
+        for b in data:
+            if is_realtime(b):
+                self._realtime(b, now)
+            elif len(self._rx) < RX_BUFFER_USABLE:
+                self._rx.append(b)
+                if b in (0x0A, 0x0D):
+                    self._process_lines(now)
+            else:
+                self.rx_overflow += 1
+
+    def poll(self, now: float) -> None:
+        self._advance(now)
+
+    def next_event(self) -> float | None:
+        times = []
+        if self._segment is not None:
+            times.append(self._segment.t_end)
+        if self._pending_alarm is not None:
+            times.append(self._pending_alarm[0])
+        return min(times) if times else None
+
+    def on_disconnect(self) -> None:
+        # USB-powered board unplugged: it loses power, position and everything volatile.
+        now = self.clock.monotonic()
+        pos = self._position(now)
+        self._offset = [p + o for p, o in zip(pos, self._offset, strict=True)]
+        self._rest = (0.0, 0.0, 0.0)
+        self._reset_volatile()
+        self._state = "Alarm" if self.settings[22] else "Idle"
+        self.forget_order()
+
+    def on_reconnect(self) -> None:
+        self._greet()
+
+    # -- time --------------------------------------------------------------------------
+    def _position(self, now: float) -> tuple[float, ...]:
+        return self._segment.position(now) if self._segment is not None else self._rest
+
+    def _advance(self, now: float) -> None:
+        while True:
+            seg = self._segment
+            alarm = self._pending_alarm
+            if seg is not None and alarm is not None and alarm[0] <= now and alarm[0] <= seg.t_end:
+                self._pending_alarm = None
+                self._rest = seg.position(alarm[0])
+                self._segment, self._current = None, None
+                self._queue.clear()
+                self._alarm(alarm[1])
+                continue
+            if seg is None or seg.t_end > now:
+                break
+            t = seg.t_end
+            self._rest = seg.position(t)
+            self._segment = None
+            if alarm is not None and alarm[0] > t:
+                self._pending_alarm = None  # the move ended (stalled) before the alarm point
+            if seg.kind == "hold":
+                self._hold_done = True
+            elif seg.kind == "jogcancel":
+                self._queue.clear()
+                self._current = None
+                self._state = "Idle"
+            elif seg.kind == "home":
+                self._finish_homing()
+            else:
+                self._start_next(t)
+        self._process_lines(now)
+
+    def _limits(
+        self, start: tuple[float, ...], end: tuple[float, ...], feed: float | None
+    ) -> tuple[float, float]:
+        """(rate units/min, accel units/s^2) along the line, limited by every axis on it."""
+        seg = Segment.between(start, end, 0.0, v_max=1.0, accel=1.0)
+        rate = accel = float("inf")
+        for i, u in enumerate(seg.unit):
+            if abs(u) > 1e-12:
+                rate = min(rate, self.settings[110 + i] / abs(u))
+                accel = min(accel, self.settings[120 + i] / abs(u))
+        if feed is not None:
+            rate = min(rate, feed)
+        return rate, accel
+
+    def _start_next(self, t: float) -> None:
+        while self._queue:
+            block = self._queue.popleft()
+            rate, accel = self._limits(self._rest, block.target, block.feed)
+            if rate == float("inf") or rate <= 0:
+                self._rest = block.target
+                continue  # zero-length block
+            seg = Segment.between(
+                self._rest, block.target, t, v_max=rate / 60.0, accel=accel, kind=block.kind
+            )
+            stall = self.faults.take("stall")
+            if stall is not None:
+                seg.stop_after = float(stall.get("fraction", 0.5)) * seg.length
+            fault = self.faults.take("alarm")
+            if fault is not None:
+                when = t + float(fault.get("at", 0.5)) * seg.profile.duration
+                self._pending_alarm = (when, GrblAlarm(int(fault.get("code", 1))))
+            self._segment, self._current = seg, block
+            self._state = "Jog" if block.kind == "jog" else "Run"
+            return
+        self._segment, self._current = None, None
+        if self._state in ("Run", "Jog"):
+            self._state = "Idle"
+
+    # -- real-time bytes ---------------------------------------------------------------
+    def _realtime(self, b: int, now: float) -> None:
+        if b == 0x18:
+            self._soft_reset(now)
+        elif self._critical:
+            return  # only a reset gets through
+        elif b == 0x3F:
+            self._send_status(now)
+        elif b == 0x21:
+            self._feed_hold(now)
+        elif b == 0x7E:
+            self._cycle_start(now)
+        elif b == 0x85:
+            self._jog_cancel(now)
+        # other extended real-time bytes (overrides, door) are ignored
+
+    def _brake(self, now: float, kind: str) -> None:
+        """Replace the current segment by its deceleration to rest."""
+        seg = self._segment
+        assert seg is not None
+        pos, v = seg.position(now), seg.speed(now)
+        _, accel = self._limits(seg.start, seg.end, None)
+        length = v * v / (2 * accel) if v > 0 else 0.0
+        end = tuple(p + u * length for p, u in zip(pos, seg.unit, strict=True))
+        self._segment = Segment(pos, end, now, Trapezoid(length, max(v, 1e-9), accel, v0=v), kind=kind)
+        self._pending_alarm = None
+
+    def _feed_hold(self, now: float) -> None:
+        if self._state == "Jog":
+            self._jog_cancel(now)
+        elif self._state == "Run" and self._segment is not None:
+            assert self._current is not None
+            self._queue.appendleft(self._current)  # resume heads for the same target
+            self._brake(now, "hold")
+            self._state, self._hold_done = "Hold", False
+
+    def _cycle_start(self, now: float) -> None:
+        if self._state == "Hold" and self._hold_done:
+            self._state, self._hold_done = "Run", False
+            self._start_next(now)
+
+    def _jog_cancel(self, now: float) -> None:
+        if self._state != "Jog":
+            return
+        self._queue.clear()
+        if self._segment is not None:
+            self._brake(now, "jogcancel")
+        else:
+            self._state = "Idle"
+
+    def _soft_reset(self, now: float) -> None:
+        moving = self._state in ("Run", "Jog", "Home") or (self._state == "Hold" and not self._hold_done)
+        homing = self._state == "Home"
+        self._rest = self._position(now)
+        self._reset_volatile()
+        if moving:
+            self._state = "Alarm"
+            code = GrblAlarm.HOMING_FAIL_RESET if homing else GrblAlarm.RESET_DURING_MOTION
+            self._push(Alarm(code))
+        elif self._state != "Alarm":
+            self._state = "Idle"
+        self._greet()
+
+    def _greet(self) -> None:
+        self._reply(Banner(self.version))
+        if self._state == "Alarm":
+            self._push(Message(MSG_UNLOCK))
+
+    # -- alarms --------------------------------------------------------------------------
+    def _alarm(self, code: GrblAlarm) -> None:
+        self._state = "Alarm"
+        self._push(Alarm(code))
+        if code in CRITICAL_ALARMS:
+            self._critical = True
+            self._push(Message(MSG_RESET_TO_CONTINUE))
+        elif code in (GrblAlarm.HOMING_FAIL_PULLOFF, GrblAlarm.HOMING_FAIL_APPROACH):
+            # A failed homing cycle resets the controller (the $H line never gets its ok).
+            self._reset_volatile()
+            self._greet()
+
+    def _outside_travel(self, target: tuple[float, ...]) -> bool:
+        if not self.settings[20]:
+            return False
+        for i, v in enumerate(target):
+            travel = self.settings[130 + i]
+            positive = int(self.settings[23]) >> i & 1
+            lo, hi = (0.0, travel) if positive else (-travel, 0.0)
+            if v < lo - 1e-9 or v > hi + 1e-9:
+                return True
+        return False
+
+    # -- lines -----------------------------------------------------------------------------
+    def _planner_full(self) -> bool:
+        return len(self._queue) + (self._current is not None) >= PLANNER_BLOCKS
+
+    def _process_lines(self, now: float) -> None:
+        while not self._critical and self._state != "Home" and not self._planner_full():
+            ends = [i for i in (self._rx.find(b"\n"), self._rx.find(b"\r")) if i >= 0]
+            if not ends:
+                return
+            cut = min(ends) + 1
+            chunk = bytes(self._rx[:cut])
+            del self._rx[:cut]
+            for line in self._splitter.feed(chunk):
+                self._execute(line, now)
+
+    def _execute(self, line: DeviceLine, now: float) -> None:
+        text = line.text
+        if line.overflow:
+            self._error(GrblError.LINE_OVERFLOW)
+        elif not text:
+            self._reply(Ok())
+        elif text.startswith("$"):
+            self._system(text, now)
+        elif self._state in ("Alarm", "Jog"):
+            self._error(GrblError.LOCKED)
+        else:
+            self._gcode(text, now)
+
+    def _planned_end(self) -> tuple[float, ...]:
+        if self._queue:
+            return self._queue[-1].target
+        if self._current is not None:
+            return self._current.target
+        return self._rest
+
+    def _gcode(self, text: str, now: float) -> None:
+        try:
+            modal, motion = parse_block(text, self._modal, self._planned_end())
+        except GcodeError as exc:
+            self._error(exc.code)
+            return
+        self._modal = modal
+        if motion is not None:
+            if self._outside_travel(motion.target):
+                self._rest = self._position(now)
+                self._segment, self._current = None, None
+                self._queue.clear()
+                self._alarm(GrblAlarm.SOFT_LIMIT)
+                return
+            self._queue.append(_Block(motion.target, motion.feed, "run"))
+            if self._segment is None and self._state in ("Idle", "Run"):
+                self._start_next(now)
+        self._reply(Ok())
+
+    def _jog(self, text: str, now: float) -> None:
+        if self._state not in ("Idle", "Jog"):
+            self._error(GrblError.NOT_IDLE)
+            return
+        try:
+            _, motion = parse_block(text[3:], self._modal, self._planned_end(), jog=True)
+        except GcodeError as exc:
+            self._error(exc.code)
+            return
+        assert motion is not None
+        if self._outside_travel(motion.target):
+            self._error(GrblError.JOG_TRAVEL_EXCEEDED)
+            return
+        self._queue.append(_Block(motion.target, motion.feed, "jog"))
+        if self._segment is None:
+            self._start_next(now)
+        self._reply(Ok())
+
+    def _system(self, text: str, now: float) -> None:
+        if text == "$":
+            self._reply(
+                Feedback("HLP", "$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x"), Ok()
+            )
+        elif text.startswith("$J="):
+            self._jog(text, now)
+        elif text == "$$":
+            if self._state in ("Run", "Hold"):
+                self._error(GrblError.NOT_IDLE)
+            else:
+                self._reply(*(Setting(n, v) for n, v in sorted(self.settings.items())), Ok())
+        elif text == "$G":
+            m = self._modal
+            feed = m.feed / 25.4 if m.inches else m.feed
+            gc = f"G{m.motion} G54 G17 G{20 if m.inches else 21} G{90 if m.absolute else 91} G94 M5 M9 T0"
+            self._reply(Feedback("GC", f"{gc} F{feed:g} S0"), Ok())
+        elif text == "$X":
+            if self._state == "Alarm":
+                self._state = "Idle"
+                self._reply(Message(MSG_UNLOCKED), Ok())
+            else:
+                self._reply(Ok())
+        elif self._state not in ("Idle", "Alarm"):
+            self._error(GrblError.NOT_IDLE)
+        elif text == "$H":
+            self._home(now)
+        elif text == "$#":
+            zero = "0.000,0.000,0.000"
+            lines = [Feedback(f"G{n}", zero) for n in (54, 55, 56, 57, 58, 59, 28, 30, 92)]
+            self._reply(*lines, Feedback("TLO", "0.000"), Feedback("PRB", f"{zero}:0"), Ok())
+        elif text == "$I":
+            opts = BuildOptions("V", PLANNER_BLOCKS, RX_BUFFER_SIZE)
+            self._reply(BuildInfo(f"{self.version}.{self.build}", self.build_text), opts, Ok())
+        elif text.startswith("$I="):
+            self.build_text = text[3:]
+            self._reply(Ok())
+        elif text == "$N":
+            self._reply(*(StartupBlock(i, b) for i, b in sorted(self.startup_blocks.items())), Ok())
+        elif re.fullmatch(r"\$N[01]=.*", text):
+            self.startup_blocks[int(text[2])] = text[4:]
+            self._reply(Ok())
+        elif text.startswith("$RST="):
+            if text[5:] in ("$", "*"):
+                self.settings = dict(self._defaults)
+            self._reply(Ok())
+        else:
+            self._write_setting(text)
+
+    def _write_setting(self, text: str) -> None:
+        m = _SETTING_WRITE.fullmatch(text)
+        if m is None:
+            self._error(GrblError.INVALID_STATEMENT)
+            return
+        try:
+            number, value = int(float(m.group(1))), float(m.group(2))
+        except ValueError:
+            self._error(GrblError.BAD_NUMBER_FORMAT)
+            return
+        if number not in self.settings:
+            self._error(GrblError.INVALID_STATEMENT)
+        elif value < 0:
+            self._error(GrblError.NEGATIVE_VALUE)
+        elif number == 20 and value and not self.settings[22]:
+            self._error(GrblError.SOFT_LIMITS_NEED_HOMING)
+        else:
+            self.settings[number] = value
+            self._reply(Ok())
+
+    # -- homing --------------------------------------------------------------------------
+    def _home(self, now: float) -> None:
+        if not self.settings[22]:
+            self._error(GrblError.HOMING_DISABLED)
+            return
+        target = tuple(-self._offset[i] if self.homing_axes[i] else self._rest[i] for i in range(len(AXES)))
+        rate, accel = self._limits(self._rest, target, self.settings[25])
+        self._state = "Home"
+        if rate == float("inf"):
+            self._finish_homing()
+            return
+        seg = Segment.between(self._rest, target, now, v_max=rate / 60.0, accel=accel, kind="home")
+        self._segment = seg
+        fault = self.faults.take("alarm")
+        if fault is not None:
+            self._pending_alarm = (now + 0.5 * seg.profile.duration, GrblAlarm.HOMING_FAIL_APPROACH)
+
+    def _finish_homing(self) -> None:
+        rest = list(self._rest)
+        for i, homed in enumerate(self.homing_axes):
+            if homed:
+                self._offset[i] = 0.0
+                rest[i] = 0.0
+        self._rest = tuple(rest)
+        self._state = "Idle"
+        self._reply(Ok())
+
+    # -- replies ---------------------------------------------------------------------------
+    def _state_text(self) -> str:
+        if self._state == "Hold":
+            return f"Hold:{0 if self._hold_done else 1}"
+        return self._state
+
+    def _send_status(self, now: float) -> None:
+        pos = self._position(now)
+        mask = int(self.settings[10])
+        busy = self._segment is not None
+        speed = self._segment.speed(now) * 60.0 if self._segment is not None else 0.0
+        wco = ov = None
+        if self._wco_counter > 0:
+            self._wco_counter -= 1
+        else:
+            self._wco_counter = (30 if busy else 10) - 1
+            self._ov_counter = self._ov_counter or 1  # overrides on the next report
+            wco = (0.0, 0.0, 0.0)
+        if self._ov_counter > 0:
+            self._ov_counter -= 1
+        else:
+            self._ov_counter = (20 if busy else 10) - 1
+            ov = (100, 100, 100)
+        state, _, sub = self._state_text().partition(":")
+        report = StatusReport(
+            state=state,
+            substate=int(sub) if sub else None,
+            mpos=pos if mask & 1 else None,
+            wpos=None if mask & 1 else pos,
+            buffer=(
+                PLANNER_BLOCKS - len(self._queue) - (self._current is not None),
+                RX_BUFFER_USABLE - len(self._rx),
+            )
+            if mask & 2
+            else None,
+            feed=round(speed, 3),
+            spindle=0.0,
+            wco=wco,
+            overrides=ov,
+        )
+        self._reply(report)
+
+    def _reply(self, *events: Event) -> None:
+        self.send(b"".join(format_event(e) for e in events))
+
+    def _push(self, event: Event) -> None:
+        # Unsolicited messages: not a reply the generic reply faults should eat.
+        self.send(format_event(event), reply=False)
+
+    def _error(self, code: GrblError) -> None:
+        self._reply(Error(code))

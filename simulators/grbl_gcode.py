@@ -1,0 +1,148 @@
+"""The G-code subset the GRBL simulator executes, with GRBL 1.1's error codes.
+
+Lines arrive cleaned by ``DeviceLineSplitter`` (upper case, no spaces or comments).
+Supported: G0 G1 (motion), G90 G91, G20 G21, G53 (machine coordinates for one block),
+G17 G54 G94 (accepted, nothing to do), F, X Y Z, N, S T (ignored), M5 M9 (no-ops), and
+``$J=`` jog blocks. Anything else GRBL knows (arcs, dwell, probing, offsets, ...) is
+answered ``error:20`` here: a simulator limitation, not GRBL's behaviour.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, replace
+
+from m2s2hil.protocols.grbl import AXES, GrblError
+
+MM_PER_INCH = 25.4
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)")
+
+# Modal groups of the G-codes the simulator accepts, for error:21.
+_G_GROUP = {
+    0: "motion",
+    1: "motion",
+    90: "distance",
+    91: "distance",
+    20: "units",
+    21: "units",
+    53: "non_modal",
+    17: "plane",
+    54: "wcs",
+    94: "feed_mode",
+}
+_JOG_G = {90, 91, 20, 21, 53}
+
+
+class GcodeError(Exception):
+    def __init__(self, code: GrblError) -> None:
+        self.code = code
+        super().__init__(code.name)
+
+
+@dataclass(frozen=True)
+class Modal:
+    absolute: bool = True
+    inches: bool = False
+    motion: int = 0
+    feed: float = 0.0  # mm/min
+
+
+@dataclass(frozen=True)
+class Motion:
+    target: tuple[float, ...]  # machine coordinates, mm
+    feed: float | None  # mm/min; None = rapid
+
+
+def tokenize(text: str) -> list[tuple[str, float]]:
+    """Words as (letter, value)."""
+    words = []
+    i = 0
+    while i < len(text):
+        letter = text[i]
+        if not ("A" <= letter <= "Z"):
+            raise GcodeError(GrblError.EXPECTED_COMMAND_LETTER)
+        m = _NUMBER.match(text, i + 1)
+        if m is None:
+            raise GcodeError(GrblError.BAD_NUMBER_FORMAT)
+        words.append((letter, float(m.group())))
+        i = m.end()
+    return words
+
+
+def parse_block(
+    text: str, modal: Modal, position: tuple[float, ...], *, jog: bool = False
+) -> tuple[Modal, Motion | None]:
+    """Execute one block's parsing: the new modal state and the motion it asks for."""
+    words = tokenize(text)
+    groups: set[str] = set()
+    g_codes: set[int] = set()
+    axes: dict[int, float] = {}
+    feed: float | None = None
+    for letter, value in words:
+        if letter == "G":
+            code = int(value) if value.is_integer() else -1
+            if code not in _G_GROUP or (jog and code not in _JOG_G):
+                raise GcodeError(GrblError.INVALID_JOG_COMMAND if jog else GrblError.UNSUPPORTED_COMMAND)
+            group = _G_GROUP[code]
+            if group in groups:
+                raise GcodeError(GrblError.MODAL_GROUP_VIOLATION)
+            groups.add(group)
+            g_codes.add(code)
+        elif letter == "M":
+            if jog:
+                raise GcodeError(GrblError.INVALID_JOG_COMMAND)
+            if value not in (5, 9):
+                raise GcodeError(GrblError.UNSUPPORTED_COMMAND)
+        elif letter in AXES:
+            idx = AXES.index(letter)
+            if idx in axes:
+                raise GcodeError(GrblError.WORD_REPEATED)
+            axes[idx] = value
+        elif letter == "F":
+            if feed is not None:
+                raise GcodeError(GrblError.WORD_REPEATED)
+            if value < 0:
+                raise GcodeError(GrblError.NEGATIVE_VALUE)
+            feed = value
+        elif letter == "N":
+            if not value.is_integer() or value < 0:
+                raise GcodeError(GrblError.INVALID_LINE_NUMBER)
+        elif letter in "ST" and not jog:
+            continue
+        else:
+            raise GcodeError(GrblError.INVALID_JOG_COMMAND if jog else GrblError.UNUSED_WORDS)
+
+    absolute = False if 91 in g_codes else True if 90 in g_codes else modal.absolute
+    inches = True if 20 in g_codes else False if 21 in g_codes else modal.inches
+    scale = MM_PER_INCH if inches else 1.0
+    motion = 0 if 0 in g_codes else 1 if 1 in g_codes else modal.motion
+    feed_mm = feed * scale if feed is not None else None
+    if jog:
+        # A jog leaves the parser's modal state as it was; it must carry its own feed.
+        if feed_mm is None:
+            raise GcodeError(GrblError.UNDEFINED_FEED_RATE)
+        if not axes:
+            raise GcodeError(GrblError.NO_AXIS_WORDS)
+        return modal, Motion(_target(axes, position, absolute, 53 in g_codes, scale), feed_mm)
+
+    new = replace(modal, absolute=absolute, inches=inches, motion=motion)
+    if feed_mm is not None:
+        new = replace(new, feed=feed_mm)
+    if 53 in g_codes and motion not in (0, 1):
+        raise GcodeError(GrblError.G53_INVALID_MOTION_MODE)
+    if not axes:
+        return new, None  # G0/G1 alone only sets the motion mode, as in GRBL
+    if motion == 1 and new.feed <= 0:
+        raise GcodeError(GrblError.UNDEFINED_FEED_RATE)
+    target = _target(axes, position, absolute, 53 in g_codes, scale)
+    return new, Motion(target, None if motion == 0 else new.feed)
+
+
+def _target(
+    axes: dict[int, float], position: tuple[float, ...], absolute: bool, machine: bool, scale: float
+) -> tuple[float, ...]:
+    out = list(position)
+    for idx, value in axes.items():
+        v = value * scale
+        out[idx] = v if (absolute or machine) else position[idx] + v
+    return tuple(out)

@@ -1,0 +1,344 @@
+"""A Zaber rotary device speaking the ASCII protocol, as a simulated serial device.
+
+One device address, one or more axes. Replies carry the command's message id and a
+checksum when the command had them (as zaber-motion sends every command), so the
+driver can match them. Positions are in microsteps; ``maxspeed`` and ``move vel`` in
+the protocol's velocity data units (microsteps/s × 1.6384), ``accel`` in its
+acceleration units (microsteps/s² × 1.6384 / 10000).
+
+Commands: the empty command (status), ``home``, ``move abs|rel|vel N``, ``stop``,
+``estop``, ``get``/``set`` of the settings below, ``warnings [clear]``. Rejections:
+``BADCOMMAND`` (unknown command or setting, writing a read-only one), ``BADDATA`` (a
+missing or non-integer number, a target outside ``limit.min..limit.max``, a velocity
+above ``maxspeed``), ``BADAXIS`` (no such axis, or a device setting asked of an axis).
+
+Flags: ``WR`` until the axis is homed; ``NI`` after ``stop``/``estop`` interrupted a
+move (cleared by the next move); faults persist until ``warnings clear``.
+Assumptions: a command with a wrong checksum is dropped without a reply; a move that
+reverses a moving axis starts its new profile from rest. A vanished port does not
+reset the device (it has its own power supply).
+
+Faults (``self.faults``): ``stall`` (``fraction``, default 0.5) stops the next move
+part-way and sets ``FS``; ``alarm`` (``flag`` default ``FQ``, ``at`` default 0.5)
+stops it mid-move with that fault flag.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from m2s2hil.protocols.zaber import (
+    ACCEL_DATA_PER_USTEP_S2,
+    VELOCITY_DATA_PER_USTEP_S,
+    CommandParser,
+    ReceivedCommand,
+    Reply,
+    flag_rank,
+    format_reply,
+    highest_flag,
+)
+from m2s2hil.simulators.device import SimDevice
+from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.motion_kit import InOrderReplies, Segment, Trapezoid
+
+AXIS_SETTINGS_RW = ("maxspeed", "accel", "limit.min", "limit.max", "pos")
+AXIS_SETTINGS_RO = ("resolution", "encoder.pos")
+
+
+@dataclass(frozen=True)
+class ZaberAxisSettings:
+    maxspeed: int = 419430  # about 60°/s at 4266.67 microsteps/° (a 0.000234375° microstep)
+    accel: int = 84  # about 120°/s²
+    limit_min: int = -10_000_000
+    limit_max: int = 10_000_000
+    resolution: int = 64
+    start: int = 0  # physical position at power-up, microsteps from the home sensor
+
+
+@dataclass
+class _Axis:
+    settings: dict[str, int]
+    offset: float  # physical = reported position + offset
+    rest: float = 0.0
+    segment: Segment | None = None
+    direction: int = 0
+    homed: bool = False
+    flags: set[str] = field(default_factory=set)
+    alarm: tuple[float, str] | None = None
+
+    def position(self, now: float) -> float:
+        if self.segment is None:
+            return self.rest
+        return self.rest + self.direction * self.segment.covered(now)
+
+    def speed(self, now: float) -> float:
+        return self.segment.speed(now) if self.segment is not None else 0.0
+
+    def all_flags(self) -> set[str]:
+        return self.flags | (set() if self.homed else {"WR"})
+
+
+class ZaberSimulator(InOrderReplies, SimDevice):
+    def __init__(
+        self,
+        name: str,
+        clock: Any,
+        *,
+        address: int = 1,
+        axes: list[ZaberAxisSettings] | int = 1,
+        faults: FaultPlan | None = None,
+        device_id: int = 50000,
+        serial: int = 12345,
+        version: str = "7.38",
+    ) -> None:
+        super().__init__(name, clock, faults)
+        if isinstance(axes, int):
+            axes = [ZaberAxisSettings() for _ in range(axes)]
+        if not 1 <= len(axes) <= 9 or not 1 <= address <= 99:
+            raise ValueError("a Zaber device has 1..9 axes and an address 1..99")
+        self.address = address
+        self._axes = [
+            _Axis(
+                {
+                    "maxspeed": a.maxspeed,
+                    "accel": a.accel,
+                    "limit.min": a.limit_min,
+                    "limit.max": a.limit_max,
+                    "resolution": a.resolution,
+                },
+                offset=float(a.start),
+            )
+            for a in axes
+        ]
+        self.device_settings: dict[str, str] = {
+            "deviceid": str(device_id),
+            "system.serial": str(serial),
+            "version": version,
+            "system.axiscount": str(len(axes)),
+            "comm.word.size.max": "20",
+            "comm.packet.size.max": "80",
+            "comm.alert": "0",
+        }
+        self._parser = CommandParser()
+        self.ignored = 0  # commands dropped for a bad checksum or a malformed line
+
+    # -- inspection ------------------------------------------------------------------
+    def axis_position(self, axis: int = 1) -> float:
+        """Physical position in microsteps from the home sensor (for the simulated world)."""
+        with self.lock:
+            now = self.clock.monotonic()
+            self._advance(now)
+            ax = self._axes[axis - 1]
+            return ax.position(now) + ax.offset
+
+    # -- SimDevice hooks -------------------------------------------------------------
+    def on_bytes(self, data: bytes) -> None:
+        now = self.clock.monotonic()
+        self._advance(now)
+        for item in self._parser.feed(data):
+            if not isinstance(item, ReceivedCommand):
+                self.ignored += 1
+                continue
+            cmd = item.command
+            if cmd.address not in (None, 0, self.address):
+                continue
+            axis = cmd.axis or 0
+            flag, data_out = self._execute(axis, cmd.text.split(), now)
+            targets = self._targets(axis) if axis <= len(self._axes) else self._axes
+            reply = Reply(
+                address=self.address,
+                axis=axis,
+                message_id=cmd.message_id,
+                flag=flag,
+                status="BUSY" if any(a.segment is not None for a in targets) else "IDLE",
+                warning=highest_flag(f for a in targets for f in a.all_flags()),
+                data=data_out,
+            )
+            self.send(format_reply(reply, with_checksum=item.checksummed))
+
+    def poll(self, now: float) -> None:
+        self._advance(now)
+
+    def next_event(self) -> float | None:
+        times = [a.segment.t_end for a in self._axes if a.segment is not None]
+        times += [a.alarm[0] for a in self._axes if a.alarm is not None]
+        return min(times) if times else None
+
+    def on_disconnect(self) -> None:
+        self.forget_order()
+
+    # -- motion ------------------------------------------------------------------------
+    def _advance(self, now: float) -> None:
+        for ax in self._axes:
+            seg = ax.segment
+            if seg is None:
+                continue
+            if ax.alarm is not None and ax.alarm[0] <= min(now, seg.t_end):
+                ax.rest = ax.position(ax.alarm[0])
+                ax.flags.add(ax.alarm[1])
+                ax.segment, ax.alarm = None, None
+            elif seg.t_end <= now:
+                ax.rest = ax.position(seg.t_end)
+                ax.segment, ax.alarm = None, None
+                if seg.stop_after is not None:
+                    ax.flags.add("FS")
+                if seg.kind == "home":
+                    ax.offset, ax.rest, ax.homed = 0.0, 0.0, True
+
+    def _start(
+        self, ax: _Axis, target: float, now: float, *, v_data: float | None = None, kind: str = "move"
+    ) -> None:
+        pos, v = ax.position(now), ax.speed(now)
+        direction = 1 if target >= pos else -1
+        v0 = v if direction == ax.direction else 0.0
+        v_max = (v_data if v_data is not None else ax.settings["maxspeed"]) / VELOCITY_DATA_PER_USTEP_S
+        accel = max(ax.settings["accel"], 1) / ACCEL_DATA_PER_USTEP_S2
+        profile = Trapezoid(abs(target - pos), max(v_max, 1e-9), accel, v0=v0)
+        ax.rest, ax.direction, ax.alarm = pos, direction, None
+        ax.segment = Segment((0.0,), (abs(target - pos),), now, profile, kind=kind)
+        ax.flags.discard("NI")
+        if kind == "home" or profile.length == 0:
+            return
+        stall = self.faults.take("stall")
+        if stall is not None:
+            ax.segment.stop_after = float(stall.get("fraction", 0.5)) * profile.length
+        fault = self.faults.take("alarm")
+        if fault is not None:
+            when = now + float(fault.get("at", 0.5)) * profile.duration
+            ax.alarm = (when, str(fault.get("flag", "FQ")))
+
+    def _stop(self, ax: _Axis, now: float, *, hard: bool) -> None:
+        if ax.segment is None:
+            return
+        pos, v = ax.position(now), ax.speed(now)
+        ax.flags.add("NI")
+        ax.alarm = None
+        if hard or v <= 0:
+            ax.rest, ax.segment = pos, None
+            return
+        accel = max(ax.settings["accel"], 1) / ACCEL_DATA_PER_USTEP_S2
+        length = v * v / (2 * accel)
+        ax.rest = pos
+        ax.segment = Segment((0.0,), (length,), now, Trapezoid(length, v, accel, v0=v), kind="stop")
+
+    # -- commands ----------------------------------------------------------------------
+    def _targets(self, axis: int) -> list[_Axis]:
+        return self._axes if axis == 0 else [self._axes[axis - 1]]
+
+    def _execute(self, axis: int, words: list[str], now: float) -> tuple[str, str]:
+        """(OK|RJ, data) for one command."""
+        if axis > len(self._axes):
+            return "RJ", "BADAXIS"
+        if not words:
+            return "OK", "0"
+        head, args = words[0], words[1:]
+        targets = self._targets(axis)
+        if head == "home" and not args:
+            for ax in targets:
+                self._start(ax, -ax.offset, now, kind="home")
+            return "OK", "0"
+        if head == "move" and len(args) == 2:
+            return self._move(targets, args[0], args[1], now)
+        if head in ("stop", "estop") and not args:
+            for ax in targets:
+                self._stop(ax, now, hard=head == "estop")
+            return "OK", "0"
+        if head == "get" and len(args) == 1:
+            return self._get(axis, args[0], now)
+        if head == "set" and len(args) == 2:
+            return self._set(axis, args[0], args[1], now)
+        if head == "warnings" and args in ([], ["clear"]):
+            flags = sorted({f for ax in targets for f in ax.all_flags()}, key=flag_rank)
+            if args:
+                for ax in targets:
+                    ax.flags.clear()
+            return "OK", " ".join([f"{len(flags):02d}", *flags])
+        return "RJ", "BADCOMMAND"
+
+    def _move(self, targets: list[_Axis], mode: str, value: str, now: float) -> tuple[str, str]:
+        if mode not in ("abs", "rel", "vel"):
+            return "RJ", "BADCOMMAND"
+        try:
+            n = int(value)
+        except ValueError:
+            return "RJ", "BADDATA"
+        plans = []
+        for ax in targets:
+            lo, hi = ax.settings["limit.min"], ax.settings["limit.max"]
+            if mode == "vel":
+                if abs(n) > ax.settings["maxspeed"]:
+                    return "RJ", "BADDATA"
+                plans.append((ax, hi if n > 0 else lo, abs(n)))
+                continue
+            target = n if mode == "abs" else round(ax.position(now)) + n
+            if not lo <= target <= hi:
+                return "RJ", "BADDATA"
+            plans.append((ax, target, None))
+        for ax, target, v in plans:
+            if v == 0:
+                self._stop(ax, now, hard=False)
+            else:
+                self._start(ax, target, now, v_data=v)
+        return "OK", "0"
+
+    def _get(self, axis: int, name: str, now: float) -> tuple[str, str]:
+        if name in self.device_settings:
+            return ("OK", self.device_settings[name]) if axis == 0 else ("RJ", "BADAXIS")
+        if name in ("pos", "encoder.pos"):
+            return "OK", " ".join(str(round(ax.position(now))) for ax in self._targets(axis))
+        if name in AXIS_SETTINGS_RW or name in AXIS_SETTINGS_RO:
+            return "OK", " ".join(str(ax.settings[name]) for ax in self._targets(axis))
+        return "RJ", "BADCOMMAND"
+
+    def _set(self, axis: int, name: str, value: str, now: float) -> tuple[str, str]:
+        if name not in AXIS_SETTINGS_RW and name != "comm.alert":
+            return "RJ", "BADCOMMAND"
+        try:
+            n = int(value)
+        except ValueError:
+            return "RJ", "BADDATA"
+        if name == "comm.alert":
+            if axis != 0 or n not in (0, 1):
+                return "RJ", "BADAXIS" if axis else "BADDATA"
+            self.device_settings[name] = str(n)
+            return "OK", "0"
+        if name in ("maxspeed", "accel") and n <= 0:
+            return "RJ", "BADDATA"
+        for ax in self._targets(axis):
+            if name == "pos":
+                if ax.segment is not None:
+                    return "RJ", "BADDATA"
+                ax.offset += ax.rest - n  # the same physical place gets a new number
+                ax.rest = float(n)
+            else:
+                ax.settings[name] = n
+        return "OK", "0"
+
+
+def zaber_sim_for(
+    name: str, dev: Any, axes: Mapping[str, Any], clock: Any, world: Any, faults: FaultPlan | None
+) -> ZaberSimulator:
+    """The simulator for the Zaber device ``name`` of a rig configuration.
+
+    ``dev`` is a ``DeviceConfig`` (its ``unit`` is the device address) and ``axes`` maps
+    roles to ``AxisConfig`` objects (``axis`` = axis number); each role is attached to
+    ``world`` (if given) in degrees.
+    """
+    numbers = {role: int(ax.axis) for role, ax in axes.items()}
+    settings = [ZaberAxisSettings() for _ in range(max(numbers.values(), default=1))]
+    for role, ax in axes.items():
+        upd = ax.units_per_degree
+        settings[numbers[role] - 1] = ZaberAxisSettings(
+            maxspeed=math.ceil(ax.max_speed_dps * upd * VELOCITY_DATA_PER_USTEP_S),
+            accel=max(1, round(ax.accel_dps2 * upd * ACCEL_DATA_PER_USTEP_S2)),
+        )
+    sim = ZaberSimulator(name, clock, address=dev.unit, axes=settings, faults=faults)
+    if world is not None:
+        for role, ax in axes.items():
+            world.attach_axis(
+                role, lambda n=numbers[role], upd=ax.units_per_degree: sim.axis_position(n) / upd
+            )
+    return sim

@@ -1,0 +1,246 @@
+"""The GRBL simulator behaves as GRBL 1.1 does at the byte level, on a virtual clock."""
+
+import itertools
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from m2s2hil.protocols.grbl import (
+    Alarm,
+    Banner,
+    BuildInfo,
+    CharacterCounter,
+    Error,
+    GrblAlarm,
+    GrblError,
+    GrblReceiver,
+    Message,
+    Ok,
+    Setting,
+    StatusReport,
+)
+from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+from m2s2hil.simulators.motion_kit import Trapezoid
+
+
+class Host:
+    """Talks to the device the way a serial port would, on the virtual clock."""
+
+    def __init__(self, sim, clock):
+        self.sim, self.clock, self.rx = sim, clock, GrblReceiver()
+
+    def io(self, data: bytes = b"", wait: float = 0.0):
+        if data:
+            self.sim.receive(data)
+        self.clock.advance(wait)
+        return self.rx.feed(self.sim.take())
+
+    def status(self) -> StatusReport:
+        (ev,) = self.io(b"?")
+        return ev
+
+
+def make(vclock, **kw):
+    kw.setdefault("axes", {"X": GrblAxisSettings(max_rate=600.0, accel=100.0)})
+    kw.setdefault("settings", {22: 0})
+    sim = GrblSimulator("g", vclock, **kw)
+    return sim, Host(sim, vclock)
+
+
+def test_motion_is_a_trapezoid_on_the_clock(vclock):
+    sim, host = make(vclock)  # 600 units/min = 10 units/s, 100 units/s^2: 0.1 s ramps
+    assert host.io(b"G0 X10\n") == [Ok()]
+    vclock.advance(0.05)
+    assert sim.axis_position("X") == pytest.approx(0.125)
+    vclock.advance(0.55)
+    st_ = host.status()
+    assert (st_.state, st_.mpos[0], st_.feed) == ("Run", pytest.approx(5.5), pytest.approx(600.0))
+    vclock.advance(0.5)
+    assert host.status().state == "Idle" and sim.axis_position("X") == pytest.approx(10.0)
+    # A diagonal is limited by the slower axis (Y keeps the default 3600/min, 120/s^2).
+    host.io(b"G91 G1 X3 Y4 F6000\n")
+    vclock.advance(10)
+    assert sim.machine_position() == pytest.approx((13.0, 4.0, 0.0))
+
+
+def test_modal_state_units_and_relative_moves(vclock):
+    sim, host = make(vclock)
+    host.io(b"G20 G91\n")
+    host.io(b"G0 X0.1\n", wait=5)
+    host.io(b"X0.1\n", wait=5)
+    assert sim.axis_position("X") == pytest.approx(5.08)
+    (gc, ok) = host.io(b"$G\n")
+    assert gc.text.startswith("G0 G54 G17 G20 G91") and ok == Ok()
+
+
+@pytest.mark.parametrize(
+    "line, code",
+    [(b"G2 X1\n", GrblError.UNSUPPORTED_COMMAND), (b"G0 G1 X1\n", GrblError.MODAL_GROUP_VIOLATION),
+     (b"X1 X2\n", GrblError.WORD_REPEATED), (b"G1 X1\n", GrblError.UNDEFINED_FEED_RATE),
+     (b"1G0\n", GrblError.EXPECTED_COMMAND_LETTER), (b"GX\n", GrblError.BAD_NUMBER_FORMAT),
+     (b"$J=G91 X1\n", GrblError.UNDEFINED_FEED_RATE), (b"$J=M5 X1 F10\n", GrblError.INVALID_JOG_COMMAND),
+     (b"$J=G91 F100\n", GrblError.NO_AXIS_WORDS), (b"$999=1\n", GrblError.INVALID_STATEMENT),
+     (b"$110=-5\n", GrblError.NEGATIVE_VALUE), (b"$110=abc\n", GrblError.BAD_NUMBER_FORMAT),
+     (b"$H\n", GrblError.HOMING_DISABLED), (b"$20=1\n", GrblError.SOFT_LIMITS_NEED_HOMING),
+     (b"G0" + b"X1" * 50 + b"\n", GrblError.LINE_OVERFLOW)],
+)  # fmt: skip
+def test_error_codes(vclock, line, code):
+    _, host = make(vclock)
+    assert host.io(line) == [Error(code)]
+
+
+def test_cr_lf_is_two_lines_and_settings_round_trip(vclock):
+    sim, host = make(vclock)
+    assert host.io(b"\r\n") == [Ok(), Ok()]
+    assert host.io(b"$110=1234.5\n") == [Ok()]
+    events = host.io(b"$$\n")
+    assert Setting(110, 1234.5) in events and events[-1] == Ok()
+    assert sim.settings[110] == 1234.5
+    ver, opt, _ = host.io(b"$I\n")
+    assert ver == BuildInfo("1.1h.20190830", "") and (opt.planner_blocks, opt.rx_buffer) == (15, 128)
+
+
+def test_boot_lock_homing_and_unlock(vclock):
+    sim, host = make(vclock, settings={22: 1}, axes={"X": GrblAxisSettings(start=25.0)})
+    assert host.io(b"\x18") == [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+    assert host.io(b"G0 X1\n") == [Error(GrblError.LOCKED)]
+    assert host.io(b"$H\n") == []  # homing takes time: the ok comes when it is done
+    assert host.status().state == "Home"
+    vclock.advance(30)
+    assert host.io() == [Ok()]
+    assert sim.axis_position("X") == pytest.approx(0.0) and host.status().mpos[0] == 0.0
+    host.io(b"\x18")
+    host.io(b"$X\n")  # already unlocked: just ok
+    assert host.status().state == "Idle"
+
+
+def test_soft_limit_alarm_is_critical_until_reset(vclock):
+    _, host = make(vclock, settings={22: 1, 20: 1}, axes={"X": GrblAxisSettings(max_travel=100.0)})
+    host.io(b"$X\n")
+    assert host.io(b"$J=G91 X5 F100\n") == [Error(GrblError.JOG_TRAVEL_EXCEEDED)]  # travel is [-100, 0]
+    assert host.io(b"G0 X-50\n") == [Ok()]
+    assert host.io(b"G0 X-150\n") == [Alarm(GrblAlarm.SOFT_LIMIT), Message("Reset to continue")]
+    assert host.io(b"?", wait=1) == []  # GRBL ignores everything but a reset now
+    assert host.io(b"$X\n", wait=1) == []
+    assert host.io(b"\x18") == [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+    assert host.status().state == "Alarm"
+    assert host.io(b"$X\n") == [Message("Caution: Unlocked"), Ok()]
+
+
+def test_hold_resume_and_jog_cancel(vclock):
+    _, host = make(vclock)
+    host.io(b"G0 X10\n", wait=0.5)
+    host.io(b"!")
+    assert host.status().state_text == "Hold:1"
+    vclock.advance(0.5)
+    held = host.status()
+    assert held.state_text == "Hold:0" and held.mpos[0] < 10
+    vclock.advance(1)
+    assert host.status().mpos == held.mpos
+    host.io(b"~", wait=5)
+    assert host.status().mpos[0] == pytest.approx(10.0)
+    host.io(b"$J=G91 X100 F600\n", wait=1)
+    assert host.status().state == "Jog"
+    assert host.io(b"G0 X0\n") == [Error(GrblError.LOCKED)]
+    host.io(b"\x85", wait=1)
+    stopped = host.status()
+    assert stopped.state == "Idle" and 15 < stopped.mpos[0] < 30
+
+
+def test_reset_while_moving_alarms(vclock):
+    sim, host = make(vclock)
+    host.io(b"G0 X10\n", wait=0.3)
+    assert host.io(b"\x18") == [
+        Alarm(GrblAlarm.RESET_DURING_MOTION),
+        Banner("1.1h"),
+        Message("'$H'|'$X' to unlock"),
+    ]
+    x = sim.axis_position("X")
+    vclock.advance(2)
+    assert sim.axis_position("X") == x and host.status().state == "Alarm"
+
+
+def test_stall_and_alarm_faults(vclock):
+    sim, host = make(vclock)
+    sim.faults.add("stall", fraction=0.25)
+    host.io(b"G0 X20\n", wait=5)
+    st_ = host.status()
+    assert (
+        st_.state == "Idle"
+        and st_.mpos[0] == pytest.approx(5.0)
+        and sim.axis_position("X") == pytest.approx(5.0)
+    )
+    sim.faults.add("alarm")
+    host.io(b"G0 X25\n")
+    vclock.advance(5)
+    assert host.io() == [Alarm(GrblAlarm.HARD_LIMIT), Message("Reset to continue")]
+    assert sim.axis_position("X") == pytest.approx(15.0)
+
+
+def test_homing_failure_alarm_resets_the_controller(vclock):
+    sim, host = make(vclock, settings={22: 1}, axes={"X": GrblAxisSettings(start=10.0)})
+    sim.faults.add("alarm")
+    assert host.io(b"$H\n", wait=10) == [
+        Alarm(GrblAlarm.HOMING_FAIL_APPROACH),
+        Banner("1.1h"),
+        Message("'$H'|'$X' to unlock"),
+    ]
+
+
+def test_receive_buffer_loses_bytes_unless_the_host_counts(vclock):
+    lines = [f"G1 X{i % 2} F6000\n".encode() for i in range(40)]  # many short moves fill the planner
+    sim, host = make(vclock)
+    sim.receive(b"".join(lines))  # a naive sender: everything at once
+    assert sim.rx_overflow > 0
+    oks = sum(isinstance(e, Ok) for e in host.io(wait=60))
+    assert oks < len(lines)
+
+    sim, host = make(vclock)
+    counter, pending, acked = CharacterCounter(), list(lines), 0
+    while acked < len(lines):
+        while pending and counter.fits(pending[0]):
+            counter.sent(pending[0])
+            sim.receive(pending.pop(0))
+        for ev in host.io(wait=0.01):
+            assert ev == Ok()
+            counter.acknowledged()
+            acked += 1
+    assert sim.rx_overflow == 0
+
+
+def test_replies_stay_in_order_with_a_late_reply(vclock):
+    sim, host = make(vclock)
+    sim.faults.add("late_reply", delay_s=1.0)
+    assert host.io(b"$I\n") == []
+    assert host.io(b"G4\n") == []  # its error waits behind the late reply
+    events = host.io(wait=1.0)
+    assert isinstance(events[0], BuildInfo) and events[-1] == Error(GrblError.UNSUPPORTED_COMMAND)
+
+
+def test_power_cycle_loses_position_not_the_axis(vclock):
+    sim, host = make(vclock, settings={22: 1})
+    host.io(b"$X\n")
+    host.io(b"G0 X7\n", wait=5)
+    sim.vanish(0.5)
+    vclock.advance(0.6)
+    assert host.io() == [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+    assert host.status().mpos[0] == 0.0 and sim.axis_position("X") == pytest.approx(7.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(0, 1000),
+    st.floats(0.1, 100),
+    st.floats(0.1, 100),
+    st.floats(0, 100),
+    st.lists(st.floats(0, 1), min_size=2, max_size=6),
+)
+def test_trapezoid_profile_is_consistent(length, v_max, accel, v0, fractions):
+    p = Trapezoid(length, v_max, accel, v0=v0)
+    times = sorted(f * p.duration for f in fractions)
+    dist = [p.distance(t) for t in times]
+    assert all(b >= a - 1e-9 for a, b in itertools.pairwise(dist))
+    assert p.distance(p.duration + 1) == length and p.distance(-1) == 0
+    assert all(p.speed(t) <= max(v_max, v0) + 1e-9 for t in times)
+    for s in (length * f for f in fractions):
+        assert p.distance(p.time_at(s)) == pytest.approx(s, abs=1e-6 * max(1, length))
