@@ -14,19 +14,9 @@ a line it does not understand, so a missing answer is a :class:`ProtocolError`.
 
 from __future__ import annotations
 
-import functools
-import threading
-from collections.abc import Callable, Iterable
-from typing import Any, TypeVar
-
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
-from m2s2hil.drivers.errors import (
-    DeviceError,
-    DeviceGone,
-    DeviceTimeout,
-    ProtocolError,
-    RelayNotSwitched,
-)
+from m2s2hil.drivers.errors import DeviceGone, ProtocolError, RelayNotSwitched
+from m2s2hil.drivers.relay_base import RelayBoardBase, one_at_a_time
 from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.protocols.ascii_relay import (
     MAX_CHANNELS,
@@ -48,22 +38,8 @@ from m2s2hil.protocols.ascii_relay import (
 )
 from m2s2hil.protocols.errors import CodecError
 
-_F = TypeVar("_F", bound=Callable[..., Any])
 
-
-def _one_at_a_time(method: _F) -> _F:
-    """Serialise public calls: a write and its read-back must not interleave with another
-    thread's transaction on the same line (the engine sets lamps while the API reads them)."""
-
-    @functools.wraps(method)
-    def wrapper(self, *args: Any, **kwargs: Any) -> Any:
-        with self._lock:
-            return method(self, *args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
-
-
-class AsciiRelayBoard:
+class AsciiRelayBoard(RelayBoardBase):
     """A :class:`~m2s2hil.drivers.interfaces.LightBank` on a Numato-style relay board."""
 
     def __init__(
@@ -79,64 +55,26 @@ class AsciiRelayBoard:
         reconnect_attempts: int = 4,
         reconnect_interval_s: float = 0.5,
     ) -> None:
-        if not 1 <= channels <= MAX_CHANNELS:
-            raise ValueError(f"{device}: channels {channels} outside 1..{MAX_CHANNELS}")
-        if retries < 0:
-            raise ValueError(f"{device}: retries must be >= 0, not {retries}")
-        if not timeout_s > 0:
-            raise ValueError(f"{device}: timeout_s must be > 0, not {timeout_s}")
-        self.name = device
-        self.channels = channels
-        self.retries = retries
-        self.clock = clock
-        self.timeout_s = timeout_s
-        self.reconnect_attempts = reconnect_attempts
-        self.reconnect_interval_s = reconnect_interval_s
+        super().__init__(
+            device, channels, MAX_CHANNELS, retries=retries, timeout_s=timeout_s, clock=clock,
+            reconnect_attempts=reconnect_attempts, reconnect_interval_s=reconnect_interval_s,
+        )
         self._link = SerialLink(url, device=device, baudrate=baudrate, timeout_s=timeout_s, clock=clock)
         self._parser = ReplyParser()
-        self._lock = threading.RLock()
-        self._needs_reconnect = False
-        self._ever_opened = False  # a port that never opened is a wrong path, not a glitch
 
     # -- connection -----------------------------------------------------------------------
-    @_one_at_a_time
+    @one_at_a_time
     def connect(self) -> None:
         """Open the port, clear any half-typed line on the board and read the relays."""
         self._transact(EmptyLine(), "sync")
         self.state()
 
-    @_one_at_a_time
-    def close(self) -> None:
-        self._link.close()
-
-    def __enter__(self) -> AsciiRelayBoard:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    @_one_at_a_time
+    @one_at_a_time
     def version(self) -> str:
         return self._one_answer(Version(), "ver")
 
     # -- LightBank ------------------------------------------------------------------------
-    @_one_at_a_time
-    def set(self, on_channels: Iterable[int]) -> None:
-        """Switch exactly ``on_channels`` on (``relay writeall``), verified by read-back."""
-        wanted = self._check_channels(on_channels)
-        command = WriteAll(sum(1 << ch for ch in wanted), self.channels)
-        self._no_answer(command, command.text)
-        actual = self.state()
-        if actual != wanted:
-            raise RelayNotSwitched(
-                f"read-back {sorted(actual)} differs from commanded {sorted(wanted)} "
-                f"(stuck: {sorted(actual ^ wanted)})",
-                device=self.name,
-                command=command.text,
-            )
-
-    @_one_at_a_time
+    @one_at_a_time
     def switch(self, channel: int, on: bool) -> None:
         """Switch one relay (``relay on/off N``), verified with ``relay read N``."""
         (ch,) = self._check_channels([channel])
@@ -152,10 +90,7 @@ class AsciiRelayBoard:
                 command=command.text,
             )
 
-    def all_off(self) -> None:
-        self.set(())
-
-    @_one_at_a_time
+    @one_at_a_time
     def state(self) -> frozenset[int]:
         text = self._one_answer(ReadAll(), "relay readall")
         try:
@@ -165,13 +100,11 @@ class AsciiRelayBoard:
         return frozenset(ch for ch in range(self.channels) if mask >> ch & 1)
 
     # -- internals --------------------------------------------------------------------------
-    def _check_channels(self, channels: Iterable[int]) -> frozenset[int]:
-        out = set()
-        for ch in channels:
-            if isinstance(ch, bool) or not isinstance(ch, int) or not 0 <= ch < self.channels:
-                raise ValueError(f"{self.name}: channel {ch!r} outside 0..{self.channels - 1}")
-            out.add(ch)
-        return frozenset(out)
+    def _write_all(self, wanted: frozenset[int]) -> str:
+        """``relay writeall`` with the whole mask."""
+        command = WriteAll(sum(1 << ch for ch in wanted), self.channels)
+        self._no_answer(command, command.text)
+        return command.text
 
     def _one_answer(self, command: Command, label: str) -> str:
         answers = self._transact(command, label, answers=1)
@@ -181,30 +114,12 @@ class AsciiRelayBoard:
         self._transact(command, label, answers=0)
 
     def _transact(self, command: Command, label: str, answers: int = 0) -> list[str]:
-        last: DeviceError | None = None
-        for attempt in range(1, self.retries + 2):
-            try:
-                return self._attempt(command, label, attempt, answers)
-            except DeviceGone as exc:
-                if not self._ever_opened:
-                    raise
-                self._needs_reconnect = True
-                last = exc
-            except (DeviceTimeout, ProtocolError) as exc:
-                last = exc
-        assert last is not None
-        raise last
+        return self._retrying(lambda attempt: self._attempt(command, label, attempt, answers))
 
     def _attempt(self, command: Command, label: str, attempt: int, n_answers: int) -> list[str]:
         where = {"device": self.name, "command": label, "attempt": attempt}
         try:
-            if self._needs_reconnect:
-                self._link.reconnect(attempts=self.reconnect_attempts, interval_s=self.reconnect_interval_s)
-            elif not self._link.is_open:
-                self._link.open()
-            self._needs_reconnect = False
-            self._ever_opened = True
-            self._link.drain_input()  # a late answer to an earlier command must not count
+            self._open_line()
             self._parser.reset()
             self._link.write(encode(command), command=label)
             echo, answers = self._read_reply(label, attempt)
@@ -222,35 +137,20 @@ class AsciiRelayBoard:
         deadline = self.clock.monotonic() + self.timeout_s
         echo = ""
         answers: list[str] = []
+
+        def missing() -> str:
+            return (
+                f"no prompt within {self.timeout_s:.3g} s (echo {echo!r}, answers {answers!r}, "
+                f"pending {self._parser.buffered!r})"
+            )
+
         while True:
-            event = self._next_event(label, attempt)
+            event = self._decoded(self._parser.next_event, label, attempt)
             if event is NEED_DATA:
-                remaining = deadline - self.clock.monotonic()
-                try:
-                    if remaining <= 0:
-                        raise DeviceTimeout("deadline passed", device=self.name)
-                    chunk = self._link.read_exact(1, timeout=remaining, command=label)
-                    chunk += self._link.read_available(command=label)
-                except DeviceTimeout as exc:
-                    raise DeviceTimeout(
-                        f"no prompt within {self.timeout_s:.3g} s (echo {echo!r}, answers {answers!r}, "
-                        f"pending {self._parser.buffered!r})",
-                        device=self.name,
-                        command=label,
-                        attempt=attempt,
-                    ) from exc
-                self._parser.receive_data(chunk)
+                self._parser.receive_data(self._read_some(deadline, label, attempt, missing))
             elif isinstance(event, Echo):  # the parser gives one echo per prompt
                 echo = event.text
             elif isinstance(event, Answer):
                 answers.append(event.text)
             elif isinstance(event, Prompt):
                 return echo, answers
-
-    def _next_event(self, label: str, attempt: int) -> Echo | Answer | Prompt | object:
-        try:
-            return self._parser.next_event()
-        except CodecError as exc:
-            raise ProtocolError(
-                f"garbled answer: {exc}", device=self.name, command=label, attempt=attempt
-            ) from exc

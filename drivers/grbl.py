@@ -21,21 +21,18 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Unpack
 
+from m2s2hil.drivers.axis_base import AxisSpec, MotionController, RotaryAxisBase
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import (
     CommandRejected,
     DeviceGone,
     DeviceTimeout,
-    MoveNotVerified,
     ProtocolError,
-    SoftLimitError,
     StageAlarm,
 )
-from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.protocols.grbl import (
     AXES,
     BUILD_INFO,
@@ -65,7 +62,6 @@ from m2s2hil.protocols.grbl import (
 )
 
 log = logging.getLogger(__name__)
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -78,7 +74,7 @@ def _name(code: object) -> str:
     return getattr(code, "name", "unknown")
 
 
-class GrblController:
+class GrblController(MotionController[Event]):
     def __init__(
         self,
         url: str,
@@ -91,16 +87,11 @@ class GrblController:
         poll_interval_s: float = 0.05,
         homing_timeout_s: float = 120.0,
     ) -> None:
-        self.device = device
-        self.clock = clock
-        self.timeout_s = timeout_s
-        self.retries = retries
-        self.poll_interval_s = poll_interval_s
-        self.homing_timeout_s = homing_timeout_s
-        self.link = SerialLink(url, device=device, baudrate=baudrate, timeout_s=timeout_s, clock=clock)
-        self._rx = GrblReceiver()
+        super().__init__(
+            url, device, baudrate, timeout_s, clock, retries, poll_interval_s, homing_timeout_s,
+            GrblReceiver(),
+        )
         self._counter = CharacterCounter()
-        self._events: deque[Event] = deque()
         self._axes: dict[str, GrblAxis] = {}
         self._wco: tuple[float, ...] | None = None
         self.settings: dict[int, float] = {}
@@ -132,9 +123,6 @@ class GrblController:
         self.read_settings()
         return self.status()
 
-    def close(self) -> None:
-        self.link.close()
-
     def reconnect(self, *, attempts: int = 10, interval_s: float = 0.5) -> ReconnectReport:
         """Reopen a vanished port and re-synchronise; says whether the controller restarted."""
         self.link.reconnect(attempts=attempts, interval_s=interval_s)
@@ -148,41 +136,17 @@ class GrblController:
         return report
 
     def _forget(self) -> None:
-        self._rx.clear()
-        self._events.clear()
+        super()._forget()
         self._counter.reset()
 
     # -- axes ------------------------------------------------------------------------
-    def axis(
-        self,
-        letter: str,
-        *,
-        name: str,
-        units_per_degree: float,
-        min_deg: float,
-        max_deg: float,
-        max_speed_dps: float,
-        accel_dps2: float,
-        tolerance_deg: float,
-        settle_s: float = 0.0,
-    ) -> GrblAxis:
+    def axis(self, letter: str, **spec: Unpack[AxisSpec]) -> GrblAxis:
         letter = letter.upper()
         if letter not in AXES:
             raise ValueError(f"GRBL axis must be one of {', '.join(AXES)}, got {letter!r}")
         if letter in self._axes:
             raise ValueError(f"axis {letter} already belongs to {self._axes[letter].name!r}")
-        ax = GrblAxis(
-            self,
-            letter,
-            name=name,
-            units_per_degree=units_per_degree,
-            min_deg=min_deg,
-            max_deg=max_deg,
-            max_speed_dps=max_speed_dps,
-            accel_dps2=accel_dps2,
-            tolerance_deg=tolerance_deg,
-            settle_s=settle_s,
-        )
+        ax = GrblAxis(self, letter, **spec)
         self._axes[letter] = ax
         return ax
 
@@ -279,17 +243,6 @@ class GrblController:
         return pos[AXES.index(letter)]
 
     # -- exchanges -------------------------------------------------------------------
-    def _retry(self, what: str, once: Callable[[int], T]) -> T:
-        attempt = 1
-        while True:
-            try:
-                return once(attempt)
-            except (DeviceTimeout, ProtocolError) as exc:
-                if attempt > self.retries:
-                    raise
-                log.warning("%s: %s; retrying %s", self.device, exc, what)
-                attempt += 1
-
     def _check_critical(self, command: str) -> None:
         if self.critical:
             raise StageAlarm(
@@ -299,23 +252,6 @@ class GrblController:
                 device=self.device,
                 command=command,
             )
-
-    def _next_event(self, deadline: float, command: str, attempt: int) -> Event:
-        while not self._events:
-            remaining = deadline - self.clock.monotonic()
-            try:
-                if remaining <= 0:
-                    raise DeviceTimeout("no reply", device=self.device, command=command)
-                line = self.link.read_until(b"\n", timeout=remaining, command=command)
-            except DeviceTimeout as exc:
-                # Whatever partial line is buffered is garbage now: drop it.
-                self.link.drain_input()
-                self._rx.clear()
-                raise DeviceTimeout(
-                    exc.detail, device=self.device, command=command, attempt=attempt
-                ) from None
-            self._events.extend(self._rx.feed(line))
-        return self._events.popleft()
 
     def _drain_pending(self, command: str) -> None:
         """Deal with whatever arrived unasked (late replies, alarms, a restart)."""
@@ -467,7 +403,7 @@ class GrblController:
                 log.warning("%s: reset while moving: ALARM:%d", self.device, int(ev.code))
 
 
-class GrblAxis:
+class GrblAxis(RotaryAxisBase):
     """One rotary axis of a GRBL controller, in degrees (``units_per_degree`` machine
     units per degree). Moves use machine coordinates (G53), so work offsets never
     shift the angle."""
@@ -486,76 +422,38 @@ class GrblAxis:
         tolerance_deg: float,
         settle_s: float = 0.0,
     ) -> None:
-        if units_per_degree <= 0 or max_speed_dps <= 0 or accel_dps2 <= 0 or tolerance_deg <= 0:
-            raise ValueError(f"{name}: units, speed, acceleration and tolerance must be positive")
-        if not min_deg < max_deg:
-            raise ValueError(f"{name}: min_deg {min_deg} must be below max_deg {max_deg}")
+        super().__init__(
+            controller, name, units_per_degree, min_deg, max_deg, max_speed_dps, accel_dps2, tolerance_deg,
+            settle_s,
+        )
         self.ctl = controller
         self.letter = letter
-        self.name = name
-        self.units_per_degree = units_per_degree
-        self.min_deg, self.max_deg = min_deg, max_deg
-        self.max_speed_dps, self.accel_dps2 = max_speed_dps, accel_dps2
-        self.tolerance_deg = tolerance_deg
-        self.settle_s = settle_s
-
-    def _check(self, degrees: float, what: str) -> None:
-        if not (self.min_deg <= degrees <= self.max_deg):
-            raise SoftLimitError(
-                f"{self.name}: {what} {degrees:g}° outside [{self.min_deg:g}, {self.max_deg:g}]°",
-                device=self.ctl.device,
-            )
 
     def _feed(self, dps: float) -> float:
         return dps * self.units_per_degree * 60.0
 
-    def _move_timeout(self, distance_deg: float) -> float:
-        """Generous bound on a move's duration, using the firmware's limits when known."""
+    def _speed_limits(self) -> tuple[float, float]:
+        """The configured limits, lowered to the firmware's ($110+, $120+) once read."""
         i = AXES.index(self.letter)
         v = self.max_speed_dps
         a = self.accel_dps2
         if self.ctl.settings:
             v = min(v, self.ctl.settings.get(110 + i, v * 60) / 60.0 / self.units_per_degree)
             a = min(a, self.ctl.settings.get(120 + i, a) / self.units_per_degree)
-        return 2.0 * (abs(distance_deg) / v + v / a) + 2.0 * self.ctl.timeout_s
+        return v, a
 
     def home(self) -> None:
         self.ctl.home()
 
-    def move_to(self, degrees: float, *, wait: bool = True) -> float:
-        self._check(degrees, "target")
-        start = self.position() if wait else None
+    def _command_move(self, degrees: float) -> str:
         line = move_line(
             {self.letter: degrees * self.units_per_degree}, feed=self._feed(self.max_speed_dps), machine=True
         )
         self.ctl.command(line)
-        if not wait:
-            return degrees
-        assert start is not None
-        self.wait_until_idle(self._move_timeout(degrees - start))
-        if self.settle_s:
-            self.ctl.clock.sleep(self.settle_s)
-        actual = self.position()
-        if abs(actual - degrees) > self.tolerance_deg:
-            raise MoveNotVerified(
-                f"{self.name}: at {actual:.4f}° after a move to {degrees:.4f}° "
-                f"(tolerance {self.tolerance_deg:g}°)",
-                target=degrees,
-                actual=actual,
-                device=self.ctl.device,
-                command=line,
-            )
-        return actual
+        return line
 
-    def rotate(self, speed_dps: float, direction: int = +1) -> None:
-        """Continuous rotation: a jog towards the soft limit on that side; stop() ends it."""
-        if direction not in (1, -1):
-            raise ValueError(f"direction must be +1 or -1, got {direction}")
-        if not 0 < speed_dps <= self.max_speed_dps:
-            raise SoftLimitError(
-                f"{self.name}: speed {speed_dps:g}°/s outside (0, {self.max_speed_dps:g}]°/s",
-                device=self.ctl.device,
-            )
+    def _command_rotation(self, speed_dps: float, direction: int) -> None:
+        """A jog towards the soft limit on that side; stop() ends it."""
         target = self.max_deg if direction > 0 else self.min_deg
         line = jog_line(
             {self.letter: target * self.units_per_degree}, feed=self._feed(speed_dps), machine=True
@@ -573,10 +471,6 @@ class GrblAxis:
 
     def wait_until_idle(self, timeout: float) -> None:
         self.ctl.wait_until_idle(timeout)
-
-    def close(self) -> None:
-        """Closes the shared controller (idempotent: every axis may call it)."""
-        self.ctl.close()
 
 
 # Codes worth importing together with the driver.

@@ -21,22 +21,10 @@ with FC01; a difference is :class:`RelayNotSwitched`.
 
 from __future__ import annotations
 
-import functools
-import threading
-from collections.abc import Callable, Iterable
-from typing import Any, TypeVar
-
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
-from m2s2hil.drivers.errors import (
-    CommandRejected,
-    DeviceError,
-    DeviceGone,
-    DeviceTimeout,
-    ProtocolError,
-    RelayNotSwitched,
-)
+from m2s2hil.drivers.errors import CommandRejected, DeviceGone, ProtocolError, RelayNotSwitched
+from m2s2hil.drivers.relay_base import RelayBoardBase, one_at_a_time
 from m2s2hil.drivers.serial_link import SerialLink
-from m2s2hil.protocols.errors import CodecError
 from m2s2hil.protocols.modbus_relay import (
     NEED_DATA,
     CoilStatus,
@@ -51,22 +39,8 @@ from m2s2hil.protocols.modbus_relay import (
     WriteCoils,
 )
 
-_F = TypeVar("_F", bound=Callable[..., Any])
 
-
-def _one_at_a_time(method: _F) -> _F:
-    """Serialise public calls: a write and its read-back must not interleave with another
-    thread's transaction on the same line (the engine sets lamps while the API reads them)."""
-
-    @functools.wraps(method)
-    def wrapper(self, *args: Any, **kwargs: Any) -> Any:
-        with self._lock:
-            return method(self, *args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
-
-
-class ModbusRelayBoard:
+class ModbusRelayBoard(RelayBoardBase):
     """A :class:`~m2s2hil.drivers.interfaces.LightBank` on a Modbus RTU relay module."""
 
     def __init__(
@@ -87,20 +61,11 @@ class ModbusRelayBoard:
     ) -> None:
         if not 1 <= unit <= 247:
             raise ValueError(f"{device}: Modbus unit id {unit} outside 1..247")
-        if not 1 <= channels <= 64:
-            raise ValueError(f"{device}: channels {channels} outside 1..64")
-        if retries < 0:
-            raise ValueError(f"{device}: retries must be >= 0, not {retries}")
-        if not timeout_s > 0:
-            raise ValueError(f"{device}: timeout_s must be > 0, not {timeout_s}")
-        self.name = device
+        super().__init__(
+            device, channels, 64, retries=retries, timeout_s=timeout_s, clock=clock,
+            reconnect_attempts=reconnect_attempts, reconnect_interval_s=reconnect_interval_s,
+        )
         self.unit = unit
-        self.channels = channels
-        self.retries = retries
-        self.clock = clock
-        self.timeout_s = timeout_s
-        self.reconnect_attempts = reconnect_attempts
-        self.reconnect_interval_s = reconnect_interval_s
         # Waveshare ships 8N1; the Modbus serial-line spec's default is 8E1: both configurable.
         self._link = SerialLink(
             url,
@@ -116,42 +81,15 @@ class ModbusRelayBoard:
         # a fixed 1.75 ms above 19200 baud, as the Modbus serial line spec says).
         self.frame_gap_s = 3.5 * 11 / baudrate if baudrate <= 19200 else 0.00175
         self._quiet_since = float("-inf")
-        self._lock = threading.RLock()
-        self._needs_reconnect = False
-        self._ever_opened = False  # a port that never opened is a wrong path, not a glitch
 
     # -- connection -----------------------------------------------------------------------
-    @_one_at_a_time
+    @one_at_a_time
     def connect(self) -> None:
         """Open the port and check that the board answers (reads the coils)."""
         self.state()
 
-    @_one_at_a_time
-    def close(self) -> None:
-        self._link.close()
-
-    def __enter__(self) -> ModbusRelayBoard:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     # -- LightBank ------------------------------------------------------------------------
-    @_one_at_a_time
-    def set(self, on_channels: Iterable[int]) -> None:
-        """Switch exactly ``on_channels`` on (one FC0F write), verified by read-back."""
-        wanted = self._check_channels(on_channels)
-        values = tuple(ch in wanted for ch in range(self.channels))
-        command = f"set {sorted(wanted)}"
-        reply = self._transact(WriteCoils(self.unit, 0, values), command)
-        if not (isinstance(reply, CoilsWritten) and reply.address == 0 and reply.count == self.channels):
-            raise ProtocolError(
-                f"write echo {reply!r} does not match the request", device=self.name, command=command
-            )
-        self._verify(wanted, command)
-
-    @_one_at_a_time
+    @one_at_a_time
     def switch(self, channel: int, on: bool) -> None:
         """Switch one channel (FC05), leaving the others; verified by read-back."""
         (ch,) = self._check_channels([channel])
@@ -170,64 +108,31 @@ class ModbusRelayBoard:
                 command=command,
             )
 
-    def all_off(self) -> None:
-        self.set(())
-
-    @_one_at_a_time
+    @one_at_a_time
     def state(self) -> frozenset[int]:
         """The channels whose coil reads on (FC01)."""
         reply = self._transact(ReadCoils(self.unit, 0, self.channels), "read coils")
         return frozenset(ch for ch in range(self.channels) if reply.values[ch])
 
     # -- internals --------------------------------------------------------------------------
-    def _check_channels(self, channels: Iterable[int]) -> frozenset[int]:
-        out = set()
-        for ch in channels:
-            if isinstance(ch, bool) or not isinstance(ch, int) or not 0 <= ch < self.channels:
-                raise ValueError(f"{self.name}: channel {ch!r} outside 0..{self.channels - 1}")
-            out.add(ch)
-        return frozenset(out)
-
-    def _verify(self, wanted: frozenset[int], command: str) -> None:
-        actual = self.state()
-        if actual != wanted:
-            raise RelayNotSwitched(
-                f"read-back {sorted(actual)} differs from commanded {sorted(wanted)} "
-                f"(stuck: {sorted(actual ^ wanted)})",
-                device=self.name,
-                command=command,
+    def _write_all(self, wanted: frozenset[int]) -> str:
+        """One FC0F write of every coil."""
+        values = tuple(ch in wanted for ch in range(self.channels))
+        command = f"set {sorted(wanted)}"
+        reply = self._transact(WriteCoils(self.unit, 0, values), command)
+        if not (isinstance(reply, CoilsWritten) and reply.address == 0 and reply.count == self.channels):
+            raise ProtocolError(
+                f"write echo {reply!r} does not match the request", device=self.name, command=command
             )
+        return command
 
     def _transact(self, request: Request, command: str) -> Event:
-        last: DeviceError | None = None
-        for attempt in range(1, self.retries + 2):
-            try:
-                return self._attempt(request, command, attempt)
-            except CommandRejected:
-                raise  # the board understood and refused: asking again changes nothing
-            except DeviceGone as exc:
-                if not self._ever_opened:
-                    raise
-                self._needs_reconnect = True
-                last = exc
-            except (DeviceTimeout, ProtocolError) as exc:
-                last = exc
-        assert last is not None
-        raise last
+        return self._retrying(lambda attempt: self._attempt(request, command, attempt))
 
     def _attempt(self, request: Request, command: str, attempt: int) -> Event:
         where = {"device": self.name, "command": command, "attempt": attempt}
         try:
-            if self._needs_reconnect or not self._link.is_open:
-                if self._needs_reconnect:
-                    self._link.reconnect(
-                        attempts=self.reconnect_attempts, interval_s=self.reconnect_interval_s
-                    )
-                else:
-                    self._link.open()
-                self._needs_reconnect = False
-                self._ever_opened = True
-            self._link.drain_input()  # a late answer to an earlier request must not count
+            self._open_line()
             self._codec.reset()
             self.clock.sleep(self._quiet_since + self.frame_gap_s - self.clock.monotonic())
             self._link.write(self._codec.send(request), command=command)
@@ -241,28 +146,14 @@ class ModbusRelayBoard:
 
     def _read_reply(self, command: str, attempt: int) -> Event:
         deadline = self.clock.monotonic() + self.timeout_s
+
+        def missing() -> str:
+            got = self._codec.buffered
+            return f"no complete answer within {self.timeout_s:.3g} s (got {got.hex(' ') or 'nothing'})"
+
         while True:
-            remaining = deadline - self.clock.monotonic()
-            try:
-                if remaining <= 0:
-                    raise DeviceTimeout("", device=self.name)
-                chunk = self._link.read_exact(1, timeout=remaining, command=command)
-                chunk += self._link.read_available(command=command)
-            except DeviceTimeout as exc:
-                got = self._codec.buffered
-                raise DeviceTimeout(
-                    f"no complete answer within {self.timeout_s:.3g} s (got {got.hex(' ') or 'nothing'})",
-                    device=self.name,
-                    command=command,
-                    attempt=attempt,
-                ) from exc
-            self._codec.receive_data(chunk)
-            try:
-                event = self._codec.next_event()
-            except CodecError as exc:
-                raise ProtocolError(
-                    f"garbled answer: {exc}", device=self.name, command=command, attempt=attempt
-                ) from exc
+            self._codec.receive_data(self._read_some(deadline, command, attempt, missing))
+            event = self._decoded(self._codec.next_event, command, attempt)
             if event is not NEED_DATA:
                 return event
 

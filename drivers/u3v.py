@@ -22,7 +22,7 @@ import logging
 import math
 import threading
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import (
@@ -81,6 +81,18 @@ class _Session:
     height: int
 
 
+class CameraOptions(TypedDict, total=False):
+    """The keywords of :class:`U3VCamera` (and so of :meth:`U3VCamera.open`)."""
+
+    backend: Any
+    vendor_id: int | None
+    product_id: int | None
+    serial: str | None
+    clock: Clock
+    timeout_s: float
+    name: str
+
+
 class U3VCamera:
     """drivers.interfaces.Camera over USB3 Vision. Build it with :meth:`open`."""
 
@@ -117,27 +129,10 @@ class U3VCamera:
         self.last_reconnect: ReconnectReport | None = None
 
     @classmethod
-    def open(
-        cls,
-        *,
-        backend: Any = None,
-        vendor_id: int | None = None,
-        product_id: int | None = None,
-        serial: str | None = None,
-        clock: Clock = SYSTEM_CLOCK,
-        timeout_s: float = 2.0,
-        name: str = "camera",
-    ) -> U3VCamera:
-        """Find and open a U3V camera (``backend=None``: a real one through libusb)."""
-        cam = cls(
-            backend=backend,
-            vendor_id=vendor_id,
-            product_id=product_id,
-            serial=serial,
-            clock=clock,
-            timeout_s=timeout_s,
-            name=name,
-        )
+    def open(cls, **options: Unpack[CameraOptions]) -> U3VCamera:
+        """Find and open a U3V camera (``backend=None``: a real one through libusb); takes
+        the constructor's keywords."""
+        cam = cls(**options)
         cam._connect()
         return cam
 

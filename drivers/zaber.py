@@ -16,20 +16,17 @@ timeout or a garbled reply; motion commands never are.
 from __future__ import annotations
 
 import logging
-from collections import deque
-from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
+from collections.abc import Mapping
+from typing import Any, Unpack
 
+from m2s2hil.drivers.axis_base import AxisSpec, MotionController, RotaryAxisBase
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import (
     CommandRejected,
     DeviceTimeout,
-    MoveNotVerified,
     ProtocolError,
-    SoftLimitError,
     StageAlarm,
 )
-from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.protocols.zaber import (
     ACCEL_DATA_PER_USTEP_S2,
     MAX_MESSAGE_ID,
@@ -48,7 +45,6 @@ from m2s2hil.protocols.zaber import (
 )
 
 log = logging.getLogger(__name__)
-T = TypeVar("T")
 INFO_SETTINGS = ("deviceid", "system.serial", "version", "system.axiscount", "comm.word.size.max")
 
 
@@ -59,7 +55,7 @@ def _code(enum_type: type, value: str) -> object:
         return value
 
 
-class ZaberDevice:
+class ZaberDevice(MotionController[Event]):
     def __init__(
         self,
         url: str,
@@ -75,16 +71,11 @@ class ZaberDevice:
     ) -> None:
         if not 1 <= address <= 99:
             raise ValueError(f"Zaber device address must be 1..99, got {address}")
-        self.device = device
+        super().__init__(
+            url, device, baudrate, timeout_s, clock, retries, poll_interval_s, homing_timeout_s,
+            ZaberReceiver(),
+        )
         self.address = address
-        self.clock = clock
-        self.timeout_s = timeout_s
-        self.retries = retries
-        self.poll_interval_s = poll_interval_s
-        self.homing_timeout_s = homing_timeout_s
-        self.link = SerialLink(url, device=device, baudrate=baudrate, timeout_s=timeout_s, clock=clock)
-        self._rx = ZaberReceiver()
-        self._events: deque[Event] = deque()
         self._next_id = 0
         self._axes: dict[int, ZaberAxis] = {}
         self.info: dict[str, str] = {}
@@ -95,8 +86,7 @@ class ZaberDevice:
         """Open the port and read what the device says about itself."""
         self.link.open()
         self.link.drain_input()
-        self._rx.clear()
-        self._events.clear()
+        self._forget()
         self.info = {}
         for name in INFO_SETTINGS:
             try:
@@ -107,32 +97,16 @@ class ZaberDevice:
                 log.info("%s: device does not know %s", self.device, name)
         return self.info
 
-    def close(self) -> None:
-        self.link.close()
-
     def reconnect(self, *, attempts: int = 10, interval_s: float = 0.5) -> Reply:
         """Reopen a vanished port; returns a status poll of the whole device."""
         self.link.reconnect(attempts=attempts, interval_s=interval_s)
-        self._rx.clear()
-        self._events.clear()
+        self._forget()
         reply = self.request(0, "", idempotent=True, check_faults=False)
         log.warning("%s: reconnected (%s, flag %s)", self.device, reply.status, reply.warning)
         return reply
 
     # -- axes ------------------------------------------------------------------------
-    def axis(
-        self,
-        number: int,
-        *,
-        name: str,
-        units_per_degree: float,
-        min_deg: float,
-        max_deg: float,
-        max_speed_dps: float,
-        accel_dps2: float,
-        tolerance_deg: float,
-        settle_s: float = 0.0,
-    ) -> ZaberAxis:
+    def axis(self, number: int, **spec: Unpack[AxisSpec]) -> ZaberAxis:
         """An axis in degrees (``units_per_degree`` microsteps per degree).
 
         Needs a connected device: writes ``maxspeed``, ``accel``, ``limit.min`` and
@@ -142,18 +116,7 @@ class ZaberDevice:
             raise ValueError(f"Zaber axis number must be 1..9, got {number}")
         if number in self._axes:
             raise ValueError(f"axis {number} already belongs to {self._axes[number].name!r}")
-        ax = ZaberAxis(
-            self,
-            number,
-            name=name,
-            units_per_degree=units_per_degree,
-            min_deg=min_deg,
-            max_deg=max_deg,
-            max_speed_dps=max_speed_dps,
-            accel_dps2=accel_dps2,
-            tolerance_deg=tolerance_deg,
-            settle_s=settle_s,
-        )
+        ax = ZaberAxis(self, number, **spec)
         ax.configure()
         self._axes[number] = ax
         return ax
@@ -174,7 +137,7 @@ class ZaberDevice:
         """Send one command and return its matching reply."""
         if idempotent:
             return self._retry(
-                text, lambda attempt: self._request_once(axis, text, timeout, attempt, check_faults)
+                repr(text), lambda attempt: self._request_once(axis, text, timeout, attempt, check_faults)
             )
         return self._request_once(axis, text, timeout, 1, check_faults)
 
@@ -205,37 +168,10 @@ class ZaberDevice:
             self.clock.sleep(min(self.poll_interval_s, remaining))
 
     # -- exchanges -------------------------------------------------------------------
-    def _retry(self, what: str, once: Callable[[int], T]) -> T:
-        attempt = 1
-        while True:
-            try:
-                return once(attempt)
-            except (DeviceTimeout, ProtocolError) as exc:
-                if attempt > self.retries:
-                    raise
-                log.warning("%s: %s; retrying %r", self.device, exc, what)
-                attempt += 1
-
     def _take_id(self) -> int:
         mid = self._next_id
         self._next_id = (mid + 1) % (MAX_MESSAGE_ID + 1)
         return mid
-
-    def _next_event(self, deadline: float, command: str, attempt: int) -> Event:
-        while not self._events:
-            remaining = deadline - self.clock.monotonic()
-            try:
-                if remaining <= 0:
-                    raise DeviceTimeout("no reply", device=self.device, command=command)
-                line = self.link.read_until(b"\n", timeout=remaining, command=command)
-            except DeviceTimeout as exc:
-                self.link.drain_input()
-                self._rx.clear()
-                raise DeviceTimeout(
-                    exc.detail, device=self.device, command=command, attempt=attempt
-                ) from None
-            self._events.extend(self._rx.feed(line))
-        return self._events.popleft()
 
     def _drain_stale(self, command: str) -> None:
         self._events.extend(self._rx.feed(self.link.read_available(command=command)))
@@ -281,7 +217,7 @@ class ZaberDevice:
             return ev
 
 
-class ZaberAxis:
+class ZaberAxis(RotaryAxisBase):
     """One rotary axis of a Zaber device, in degrees."""
 
     def __init__(
@@ -298,18 +234,11 @@ class ZaberAxis:
         tolerance_deg: float,
         settle_s: float = 0.0,
     ) -> None:
-        if units_per_degree <= 0 or max_speed_dps <= 0 or accel_dps2 <= 0 or tolerance_deg <= 0:
-            raise ValueError(f"{name}: units, speed, acceleration and tolerance must be positive")
-        if not min_deg < max_deg:
-            raise ValueError(f"{name}: min_deg {min_deg} must be below max_deg {max_deg}")
+        super().__init__(
+            dev, name, units_per_degree, min_deg, max_deg, max_speed_dps, accel_dps2, tolerance_deg, settle_s
+        )
         self.dev = dev
         self.number = number
-        self.name = name
-        self.units_per_degree = units_per_degree
-        self.min_deg, self.max_deg = min_deg, max_deg
-        self.max_speed_dps, self.accel_dps2 = max_speed_dps, accel_dps2
-        self.tolerance_deg = tolerance_deg
-        self.settle_s = settle_s
 
     def _speed_data(self, dps: float) -> int:
         return max(1, round(dps * self.units_per_degree * VELOCITY_DATA_PER_USTEP_S))
@@ -325,53 +254,17 @@ class ZaberAxis:
         ):
             self.dev.request(self.number, f"set {setting} {value}", check_faults=False)
 
-    def _check(self, degrees: float) -> None:
-        if not (self.min_deg <= degrees <= self.max_deg):
-            raise SoftLimitError(
-                f"{self.name}: target {degrees:g}° outside [{self.min_deg:g}, {self.max_deg:g}]°",
-                device=self.dev.device,
-            )
-
-    def _move_timeout(self, distance_deg: float) -> float:
-        v, a = self.max_speed_dps, self.accel_dps2
-        return 2.0 * (abs(distance_deg) / v + v / a) + 2.0 * self.dev.timeout_s
-
     def home(self) -> None:
         self.dev.request(self.number, "home")
         self.dev.wait_until_idle(self.number, self.dev.homing_timeout_s)
 
-    def move_to(self, degrees: float, *, wait: bool = True) -> float:
-        self._check(degrees)
-        start = self.position() if wait else None
+    def _command_move(self, degrees: float) -> str:
         command = f"move abs {round(degrees * self.units_per_degree)}"
         self.dev.request(self.number, command)
-        if not wait:
-            return degrees
-        assert start is not None
-        self.wait_until_idle(self._move_timeout(degrees - start))
-        if self.settle_s:
-            self.dev.clock.sleep(self.settle_s)
-        actual = self.position()
-        if abs(actual - degrees) > self.tolerance_deg:
-            raise MoveNotVerified(
-                f"{self.name}: at {actual:.4f}° after a move to {degrees:.4f}° "
-                f"(tolerance {self.tolerance_deg:g}°)",
-                target=degrees,
-                actual=actual,
-                device=self.dev.device,
-                command=command,
-            )
-        return actual
+        return command
 
-    def rotate(self, speed_dps: float, direction: int = +1) -> None:
-        """Continuous rotation (``move vel``); the device stops at the soft limits."""
-        if direction not in (1, -1):
-            raise ValueError(f"direction must be +1 or -1, got {direction}")
-        if not 0 < speed_dps <= self.max_speed_dps:
-            raise SoftLimitError(
-                f"{self.name}: speed {speed_dps:g}°/s outside (0, {self.max_speed_dps:g}]°/s",
-                device=self.dev.device,
-            )
+    def _command_rotation(self, speed_dps: float, direction: int) -> None:
+        """``move vel``; the device itself stops at the soft limits."""
         self.dev.request(self.number, f"move vel {direction * self._speed_data(speed_dps)}")
 
     def position(self) -> float:
@@ -395,10 +288,6 @@ class ZaberAxis:
 
     def wait_until_idle(self, timeout: float) -> None:
         self.dev.wait_until_idle(self.number, timeout)
-
-    def close(self) -> None:
-        """Closes the shared device (idempotent)."""
-        self.dev.close()
 
 
 def open_zaber_axes(

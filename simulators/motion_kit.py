@@ -39,7 +39,8 @@ class Trapezoid:
         self.d1 = abs(vp * vp - v0 * v0) / (2 * accel)
         d3 = vp * vp / (2 * accel)
         self.d2 = max(0.0, length - self.d1 - d3)
-        self.t2 = self.d2 / vp
+        # A denormal length can underflow vp to 0: then there is no cruise phase to time.
+        self.t2 = self.d2 / vp if vp > 0 else 0.0
         self.t3 = vp / accel
 
     @property

@@ -1,0 +1,216 @@
+"""What the rotary-axis drivers (GRBL, Zaber) have in common.
+
+:class:`MotionController` is the serial side of a controller that answers in lines:
+the link, the receiver's queue of decoded events read against a deadline, and the
+retries of idempotent exchanges. :class:`RotaryAxisBase` is one axis in degrees: the
+checks of its settings, the soft limits, the move timeout and the verified
+``move_to`` (command, wait until idle, settle, read back, compare). A subclass says
+how to command a move or a rotation, how to read the position and how to wait.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable
+from typing import Generic, NotRequired, Protocol, TypedDict, TypeVar
+
+from m2s2hil.drivers.clock import Clock
+from m2s2hil.drivers.errors import DeviceTimeout, MoveNotVerified, ProtocolError, SoftLimitError
+from m2s2hil.drivers.serial_link import SerialLink
+
+T = TypeVar("T")
+E = TypeVar("E")
+
+
+class AxisSpec(TypedDict):
+    """The keywords an axis is made with, after its controller and its address."""
+
+    name: str
+    units_per_degree: float
+    min_deg: float
+    max_deg: float
+    max_speed_dps: float
+    accel_dps2: float
+    tolerance_deg: float
+    settle_s: NotRequired[float]
+
+
+class _Receiver(Protocol[E]):
+    def feed(self, data: bytes) -> list[E]: ...
+
+    def clear(self) -> None: ...
+
+
+class MotionController(Generic[E]):
+    """A motion controller on a serial line whose replies are lines decoded by ``receiver``."""
+
+    def __init__(
+        self,
+        url: str,
+        device: str,
+        baudrate: int,
+        timeout_s: float,
+        clock: Clock,
+        retries: int,
+        poll_interval_s: float,
+        homing_timeout_s: float,
+        receiver: _Receiver[E],
+    ) -> None:
+        self.device = device
+        self.clock = clock
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.poll_interval_s = poll_interval_s
+        self.homing_timeout_s = homing_timeout_s
+        self.link = SerialLink(url, device=device, baudrate=baudrate, timeout_s=timeout_s, clock=clock)
+        self._rx = receiver
+        self._events: deque[E] = deque()
+
+    def close(self) -> None:
+        self.link.close()
+
+    def _forget(self) -> None:
+        """Drop a partial line and the events not yet taken."""
+        self._rx.clear()
+        self._events.clear()
+
+    def _retry(self, what: str, once: Callable[[int], T]) -> T:
+        """``once(attempt)`` again after a timeout or a garbled reply, ``retries`` times at most."""
+        attempt = 1
+        while True:
+            try:
+                return once(attempt)
+            except (DeviceTimeout, ProtocolError) as exc:
+                if attempt > self.retries:
+                    raise
+                # Under the concrete driver's logger, so its logging configuration applies.
+                logging.getLogger(type(self).__module__).warning(
+                    "%s: %s; retrying %s", self.device, exc, what
+                )
+                attempt += 1
+
+    def _next_event(self, deadline: float, command: str, attempt: int) -> E:
+        while not self._events:
+            remaining = deadline - self.clock.monotonic()
+            try:
+                if remaining <= 0:
+                    raise DeviceTimeout("no reply", device=self.device, command=command)
+                line = self.link.read_until(b"\n", timeout=remaining, command=command)
+            except DeviceTimeout as exc:
+                # Whatever partial line is buffered is garbage now: drop it.
+                self.link.drain_input()
+                self._rx.clear()
+                raise DeviceTimeout(
+                    exc.detail, device=self.device, command=command, attempt=attempt
+                ) from None
+            self._events.extend(self._rx.feed(line))
+        return self._events.popleft()
+
+
+class RotaryAxisBase(ABC):
+    """One rotary axis in degrees (a ``RotaryAxis``) on a :class:`MotionController`."""
+
+    def __init__(
+        self,
+        owner: MotionController,
+        name: str,
+        units_per_degree: float,
+        min_deg: float,
+        max_deg: float,
+        max_speed_dps: float,
+        accel_dps2: float,
+        tolerance_deg: float,
+        settle_s: float,
+    ) -> None:
+        if units_per_degree <= 0 or max_speed_dps <= 0 or accel_dps2 <= 0 or tolerance_deg <= 0:
+            raise ValueError(f"{name}: units, speed, acceleration and tolerance must be positive")
+        if not min_deg < max_deg:
+            raise ValueError(f"{name}: min_deg {min_deg} must be below max_deg {max_deg}")
+        self._owner = owner
+        self.name = name
+        self.units_per_degree = units_per_degree
+        self.min_deg, self.max_deg = min_deg, max_deg
+        self.max_speed_dps, self.accel_dps2 = max_speed_dps, accel_dps2
+        self.tolerance_deg = tolerance_deg
+        self.settle_s = settle_s
+
+    # -- what a subclass provides ------------------------------------------------------
+    @abstractmethod
+    def _command_move(self, degrees: float) -> str:
+        """Start the move to ``degrees`` (within the limits); returns the command sent."""
+
+    @abstractmethod
+    def _command_rotation(self, speed_dps: float, direction: int) -> None:
+        """Start a continuous rotation (speed and direction already checked)."""
+
+    @abstractmethod
+    def position(self) -> float: ...
+
+    @abstractmethod
+    def wait_until_idle(self, timeout: float) -> None: ...
+
+    @abstractmethod
+    def home(self) -> None: ...
+
+    @abstractmethod
+    def stop(self) -> None: ...
+
+    @abstractmethod
+    def is_moving(self) -> bool: ...
+
+    def _speed_limits(self) -> tuple[float, float]:
+        """Top speed (°/s) and acceleration (°/s²) a move may use."""
+        return self.max_speed_dps, self.accel_dps2
+
+    # -- shared ------------------------------------------------------------------------
+    def _check(self, degrees: float) -> None:
+        if not (self.min_deg <= degrees <= self.max_deg):
+            raise SoftLimitError(
+                f"{self.name}: target {degrees:g}° outside [{self.min_deg:g}, {self.max_deg:g}]°",
+                device=self._owner.device,
+            )
+
+    def _move_timeout(self, distance_deg: float) -> float:
+        """Generous bound on a move's duration: twice the trapezoid's, plus two reply timeouts."""
+        v, a = self._speed_limits()
+        return 2.0 * (abs(distance_deg) / v + v / a) + 2.0 * self._owner.timeout_s
+
+    def move_to(self, degrees: float, *, wait: bool = True) -> float:
+        self._check(degrees)
+        start = self.position() if wait else None
+        command = self._command_move(degrees)
+        if not wait:
+            return degrees
+        assert start is not None
+        self.wait_until_idle(self._move_timeout(degrees - start))
+        if self.settle_s:
+            self._owner.clock.sleep(self.settle_s)
+        actual = self.position()
+        if abs(actual - degrees) > self.tolerance_deg:
+            raise MoveNotVerified(
+                f"{self.name}: at {actual:.4f}° after a move to {degrees:.4f}° "
+                f"(tolerance {self.tolerance_deg:g}°)",
+                target=degrees,
+                actual=actual,
+                device=self._owner.device,
+                command=command,
+            )
+        return actual
+
+    def rotate(self, speed_dps: float, direction: int = +1) -> None:
+        """Continuous rotation at ``speed_dps`` towards ``direction`` (+1/-1) until stop();
+        the soft limits still end it."""
+        if direction not in (1, -1):
+            raise ValueError(f"direction must be +1 or -1, got {direction}")
+        if not 0 < speed_dps <= self.max_speed_dps:
+            raise SoftLimitError(
+                f"{self.name}: speed {speed_dps:g}°/s outside (0, {self.max_speed_dps:g}]°/s",
+                device=self._owner.device,
+            )
+        self._command_rotation(speed_dps, direction)
+
+    def close(self) -> None:
+        """Closes the shared controller (idempotent: every axis may call it)."""
+        self._owner.close()
