@@ -160,9 +160,7 @@ def _run_engine(engine, *, virtual: bool) -> int:
     _summary(final, engine)
     if final.state is RunState.COMPLETED:
         return EXIT_OK
-    if final.state is RunState.ABORTED if hasattr(RunState, "ABORTED") else False:
-        return EXIT_ABORTED
-    if interrupts > 1:
+    if final.state is RunState.ABORTED:
         return EXIT_ABORTED
     return EXIT_FAILED
 

@@ -1,0 +1,242 @@
+"""What the engine does to the rig: verified moves, lamps with warm-up, recovery, safe state.
+
+:class:`RigOps` keeps the little the engine must remember about the hardware (the
+verified pose, which lamps are lit and since when) so that a capture only moves an
+axis or switches a lamp when it has to, and forgets it after a fault (``invalidate``)
+so the next capture re-commands everything and re-verifies.
+
+- Moves: ``move_to`` returns the driver's verified read-back; it is checked again here
+  against the axis tolerance (a driver that does not verify cannot slip through).
+- Lamps: every lamp that was off gets its configured ``warmup_s`` before an exposure;
+  the wait overlaps the move.
+- Safe state (:meth:`RigOps.make_safe`): lamps off and both axes stopped, tried up to
+  ``attempts`` times with a short back-off, every step each time, even when a step
+  raises; the errors are returned, never raised, so teardown keeps the original error.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+from m2s2hil.drivers.errors import MoveNotVerified
+from m2s2hil.rig import Rig
+
+log = logging.getLogger(__name__)
+
+ROLES = ("turntable", "tilt")
+
+
+@dataclass
+class SafeReport:
+    safe: bool  # the last attempt left lamps off and motion stopped
+    errors: list[Exception] = field(default_factory=list)  # every error met on the way
+    attempts: int = 0
+
+
+class RigOps:
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self.clock = rig.clock
+        self._warmup = {lamp.channel: lamp.warmup_s for lamp in rig.config.lamps.values()}
+        self._lamp_names = {lamp.channel: name for name, lamp in rig.config.lamps.items()}
+        self._on_since: dict[int, float] = {}
+        self._lit: frozenset[int] | None = None  # None: unknown (start, after a fault)
+        self._pose: dict[str, float | None] = dict.fromkeys(ROLES)
+        self._moved_at = -1e18  # clock time the last move ended
+        self.lens_capped = False
+
+    # -- state -----------------------------------------------------------------------
+    def axis(self, role: str) -> Any:
+        return self.rig.turntable if role == "turntable" else self.rig.tilt
+
+    def pose(self) -> dict[str, float | None]:
+        return dict(self._pose)
+
+    @property
+    def lit(self) -> frozenset[int]:
+        return self._lit or frozenset()
+
+    def lamp_names(self, channels: frozenset[int] | None = None) -> list[str]:
+        chans = self.lit if channels is None else channels
+        return [self._lamp_names.get(c, f"ch{c}") for c in sorted(chans)]
+
+    def invalidate(self, *, lamps: bool = True, pose: bool = True) -> None:
+        """Forget what we believe about the hardware (after a fault or a reconnect)."""
+        if lamps:
+            self._lit = None
+            self._on_since.clear()  # a lamp may have dropped out: warm it up again
+        if pose:
+            self._pose = dict.fromkeys(ROLES)
+
+    # -- lamps -----------------------------------------------------------------------
+    def set_lamps(self, channels: frozenset[int]) -> bool:
+        """Switch exactly ``channels`` on (verified by the driver); False if already so."""
+        if self._lit == channels:
+            return False
+        self.rig.lights.set(sorted(channels))
+        now = self.clock.monotonic()
+        for ch in list(self._on_since):
+            if ch not in channels:
+                del self._on_since[ch]
+        for ch in channels:
+            self._on_since.setdefault(ch, now)
+        self._lit = channels
+        return True
+
+    def lamps_ready_at(self) -> float:
+        return max((t + self._warmup.get(ch, 0.0) for ch, t in self._on_since.items()), default=-1e18)
+
+    def lamp_ages(self) -> dict[str, float]:
+        now = self.clock.monotonic()
+        return {self._lamp_names.get(ch, f"ch{ch}"): now - t for ch, t in sorted(self._on_since.items())}
+
+    def lamps_off(self) -> None:
+        self.rig.lights.set(())
+        self._on_since.clear()
+        self._lit = frozenset()
+
+    # -- motion ----------------------------------------------------------------------
+    def move(self, role: str, target: float) -> bool:
+        """Move one axis to ``target`` and verify the read-back; False if it was there."""
+        tol = self.rig.config.axes[role].tolerance_deg
+        cur = self._pose[role]
+        if cur is not None and abs(cur - target) <= tol / 2:
+            return False
+        self._pose[role] = None
+        actual = float(self.axis(role).move_to(target, wait=True))
+        if abs(actual - target) > tol:
+            raise MoveNotVerified(
+                f"read back {actual:.4f} deg after moving to {target:.4f} deg (tolerance {tol} deg)",
+                target=target, actual=actual, device=getattr(self.axis(role), "name", role),
+                command=f"move {role} {target}",
+            )
+        self._pose[role] = actual
+        self._moved_at = self.clock.monotonic()
+        return True
+
+    def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[str]:
+        """Tilt first (it changes rarely), then the turntable; returns the axes moved."""
+        moved = [r for r, t in (("tilt", tilt_deg), ("turntable", azimuth_deg)) if self.move(r, t)]
+        return moved
+
+    def settle_s(self, moved: list[str], override: float | None) -> float:
+        if not moved:
+            return 0.0
+        if override is not None:
+            return override
+        return max(self.rig.config.axes[r].settle_s for r in moved)
+
+    def wait_ready(self, settle_until: float) -> float:
+        """Sleep until the stage has settled and the lamps are warm; returns the wait."""
+        now = self.clock.monotonic()
+        wait = max(settle_until, self.lamps_ready_at()) - now
+        if wait > 0:
+            self.clock.sleep(wait)
+            return wait
+        return 0.0
+
+    # -- recovery --------------------------------------------------------------------
+    def devices_named(self, device: str | None) -> list[tuple[str, Any]]:
+        """The rig objects an error's ``device`` names (the stage serves both axes)."""
+        cfg = self.rig.config
+        config_names = {
+            "turntable": cfg.axes["turntable"].device,
+            "tilt": cfg.axes["tilt"].device,
+            "lights": cfg.relay_device if cfg.lamps else None,
+        }
+        found = []
+        for role, dev in (("turntable", self.rig.turntable), ("tilt", self.rig.tilt),
+                          ("lights", self.rig.lights), ("camera", self.rig.camera)):
+            names = {getattr(dev, "name", None), role, config_names.get(role),
+                     getattr(self._controller(dev), "device", None)}
+            if device is not None and device in names:
+                found.append((role, dev))
+        return found
+
+    @staticmethod
+    def _controller(dev: Any) -> Any:
+        """The object that owns the connection (a GRBL axis shares its controller)."""
+        return getattr(dev, "ctl", None) or getattr(dev, "controller", None) or dev
+
+    def reconnect(self, device: str | None) -> list[str]:
+        """Reconnect the devices behind ``device`` (all of them if unknown).
+
+        A motion controller that restarted while it was away has lost its position:
+        its axes are homed again.
+        """
+        targets = self.devices_named(device) or [
+            ("turntable", self.rig.turntable), ("tilt", self.rig.tilt),
+            ("lights", self.rig.lights), ("camera", self.rig.camera),
+        ]
+        done: list[str] = []
+        seen: set[int] = set()
+        rehome: list[str] = []
+        for role, dev in targets:
+            owner = self._controller(dev)
+            if id(owner) in seen:
+                continue
+            seen.add(id(owner))
+            fn = getattr(owner, "reconnect", None) or getattr(owner, "connect", None)
+            if fn is None:
+                continue
+            report = fn()
+            done.append(role)
+            if role in ROLES and getattr(report, "reset", False):
+                rehome.append(role)
+        self.invalidate()
+        if rehome:
+            self.home(getattr(self.axis(rehome[0]), "name", rehome[0]))
+        return done
+
+    def home(self, device: str | None) -> list[str]:
+        """Clear an alarm and home the axes behind ``device`` (both if it is not an axis).
+
+        A controller that offers ``clear_alarm(home=True)`` (GRBL: soft reset, then
+        ``$H``) gets that, once; otherwise each axis's ``home()``.
+        """
+        named = [r for r, _ in self.devices_named(device) if r in ROLES]
+        roles = named or list(ROLES)
+        seen: set[int] = set()
+        for r in roles:
+            ax = self.axis(r)
+            owner = self._controller(ax)
+            if id(owner) in seen:
+                continue
+            seen.add(id(owner))
+            clear = getattr(owner, "clear_alarm", None)
+            if clear is not None and owner is not ax:
+                clear(home=True)
+            else:
+                ax.home()
+        # Homing may move every axis on the controller: trust no remembered position.
+        self._pose = dict.fromkeys(ROLES)
+        return roles
+
+    # -- safe state ------------------------------------------------------------------
+    def make_safe(self, attempts: int = 3, backoff_s: float = 0.2) -> SafeReport:
+        """Lamps off, motion stopped, lens uncapped; retried until clean. Never raises."""
+        errors: list[Exception] = []
+        for i in range(attempts):
+            try:
+                step_errors = self.rig.safe()
+            except Exception as exc:  # a broken safe() must not hide the original error
+                step_errors = [exc]
+            if self.lens_capped:
+                try:
+                    self.rig.cap_lens(False)
+                    self.lens_capped = False
+                except Exception as exc:
+                    step_errors.append(exc)
+            errors.extend(step_errors)
+            if not step_errors:
+                self._on_since.clear()
+                self._lit = frozenset()
+                return SafeReport(True, errors, i + 1)
+            log.warning("safe state attempt %d/%d left %d error(s)", i + 1, attempts, len(step_errors))
+            self.invalidate()
+            with contextlib.suppress(Exception):
+                self.clock.sleep(backoff_s * (2**i))
+        return SafeReport(False, errors, attempts)

@@ -1,0 +1,113 @@
+"""Crash and resume: a session killed with SIGKILL mid-way continues from its journal."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+from engine_helpers import assert_rig_safe, small_rig_config, small_sweep
+
+from m2s2hil.engine import Engine, interrupted_sessions
+from m2s2hil.engine_state import RunState
+from m2s2hil.simrig import open_simulated_rig
+from m2s2hil.store import SessionStore
+
+TESTS = Path(__file__).parent
+
+# The child runs a real session and prints one line per stored frame; each stored frame
+# is followed by a short real-time pause so the parent can kill it mid-session.
+CHILD = textwrap.dedent("""
+    import sys, time
+    sys.path.insert(0, {tests!r})
+    from engine_helpers import small_rig_config, small_sweep
+    from m2s2hil.engine import Engine
+    from m2s2hil.engine_state import FrameStored
+    from m2s2hil.simrig import open_simulated_rig
+    from m2s2hil.store import SessionStore
+
+    cfg = small_rig_config()
+    sweep = small_sweep(azimuth_step_deg=45)
+    rig = open_simulated_rig(cfg)
+    store = SessionStore.create({root!r}, sweep, cfg, session_id="crashy", clock=rig.clock)
+
+    def on_event(e):
+        if isinstance(e, FrameStored):
+            print("stored", e.event_id, flush=True)
+            time.sleep(0.3)
+
+    Engine(rig, store, sweep, on_event=on_event, process_depth=1, store_depth=1).run()
+    print("finished", flush=True)
+""")
+
+
+def test_kill_9_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path) -> None:
+    root = tmp_path / "data"
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD.format(tests=str(TESTS), root=str(root))],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    stored: list[str] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(stored) < 3:
+            line = child.stdout.readline()
+            assert line, f"child ended early: {child.stderr.read()[-2000:]}"
+            assert time.monotonic() < deadline, "child too slow"
+            if line.startswith("stored"):
+                stored.append(line.split()[1])
+        os.kill(child.pid, signal.SIGKILL)
+    finally:
+        child.wait(timeout=30)
+        child.stdout.close()
+        child.stderr.close()
+    assert child.returncode == -signal.SIGKILL
+
+    cfg = small_rig_config()
+    planned = small_sweep(azimuth_step_deg=45).expand(cfg)
+    with SessionStore.open(root, "crashy") as crashed:
+        before = crashed.completed_event_ids()
+        assert set(stored) <= before < {e.event_id for e in planned}  # mid-way, journal intact
+        assert crashed.state == "running"  # it never got to say otherwise
+
+    assert interrupted_sessions(root) == ["crashy"]  # what a restarted daemon picks up
+    rig = open_simulated_rig(cfg)
+    try:
+        engine = Engine.resume_session(rig, root, "crashy")
+        assert engine.status().done == len(before)
+        final = engine.run()
+        assert final.state is RunState.COMPLETED and final.done == final.total == len(planned)
+        store = engine.store
+        frame_ids = [f.event_id for f in store.frames()]
+        assert sorted(frame_ids) == sorted(e.event_id for e in planned if e.kind == "frame")
+        assert len(frame_ids) == len(set(frame_ids))  # none twice
+        assert [d.dark_id for d in store.darks()] == [e.event_id for e in planned if e.kind == "dark"]
+        assert store.verify() == []  # checksums valid, no orphans left by the killed writer
+        assert store.state == "completed" and interrupted_sessions(root) == []
+        # the resumed run captured exactly what was missing
+        resumed = [e["payload"] for e in store.events() if e["kind"] == "run_started"]
+        assert [r["done_before"] for r in resumed] == [0, len(before)]
+        assert_rig_safe(rig)
+        store.close()
+    finally:
+        rig.close()
+
+
+def test_resume_refuses_a_different_rig(tmp_path) -> None:
+    import pytest
+
+    from m2s2hil.errors import UsageError
+
+    cfg = small_rig_config()
+    SessionStore.create(tmp_path, small_sweep(), cfg, session_id="s").close()
+    other = small_rig_config(size=512)
+    rig = open_simulated_rig(other)
+    try:
+        with pytest.raises(UsageError, match="different rig configuration"):
+            Engine.resume_session(rig, tmp_path, "s")
+    finally:
+        rig.close()
