@@ -20,7 +20,7 @@ app = typer.Typer(
 
 
 def _register() -> None:
-    from m2s2hil.commands import export, importer, rig, sessions, sim, sim_serve
+    from m2s2hil.commands import evaluate, export, importer, rig, sessions, sim, sim_serve
 
     sim.app.command("serve")(sim_serve.serve)
     app.add_typer(sim.app, name="sim")
@@ -28,6 +28,8 @@ def _register() -> None:
     app.add_typer(sessions.app, name="sessions")
     app.command("export")(export.export_cmd)
     app.command("import")(importer.import_cmd)
+    app.command("evaluate")(evaluate.evaluate_cmd)
+    app.command("report")(evaluate.report_cmd)
 
 
 _register()

@@ -606,6 +606,9 @@ class Engine:
             out["passes"] = self._stats.passes
         if self._auto:
             out["auto_exposure"] = {c: r.exposure_s for c, r in self._auto.items()}
+        qc_summary = getattr(self.qc, "summary", None)
+        if callable(qc_summary):  # the QC hook keeps the distribution of its scores
+            out["qc"] = qc_summary()
         return out
 
     # ------------------------------------------------------------------ scheduling

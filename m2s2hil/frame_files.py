@@ -142,7 +142,9 @@ def decode_png(data: bytes) -> np.ndarray:
 
 def decode_tiff(data: bytes) -> tuple[np.ndarray, dict]:
     """TIFF bytes to (array, description JSON); a non-JSON description gives {}."""
-    with tifffile.TiffFile(io.BytesIO(data)) as tf:
+    # is_shaped=False: our JSON descriptions may hold a nested "shape" key (a dark's
+    # provenance), which tifffile would otherwise take for its own shaped-series metadata.
+    with tifffile.TiffFile(io.BytesIO(data), is_shaped=False) as tf:
         arr = tf.asarray()
         desc = tf.pages[0].description
     try:

@@ -382,3 +382,14 @@ def test_extra_arrays_are_written_checksummed_and_committed_with_the_frame(store
     with pytest.raises(UsageError, match="invalid extra file role"):
         store.write_frame(evs[1], raw_of(1), extra={"raw": labels})
     assert evs[1].event_id not in store.completed_event_ids()
+
+
+def test_metadata_with_a_nested_shape_key_reads_back(tmp_path):
+    """tifffile must not mistake our JSON description for its shaped-series metadata."""
+    from m2s2hil.frame_files import decode_tiff, encode_tiff
+
+    raw = np.arange(64, dtype=np.uint16).reshape(8, 8)
+    data = encode_tiff(raw, {"dark": {"shape": [8, 8], "n": 4}, "exposure_s": 0.008})
+    arr, meta = decode_tiff(data)
+    assert np.array_equal(arr, raw)
+    assert meta["dark"]["shape"] == [8, 8]

@@ -44,11 +44,15 @@ def show_cmd(
     as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
 ) -> None:
     """A session's summary (and, with --verify, its integrity check)."""
+    from m2s2hil.analysis.qc import qc_summary
     from m2s2hil.store import SessionStore, default_data_root
 
     store = SessionStore.open(root or default_data_root(), session)
     try:
         summary = store.summary()
+        qc = qc_summary(store.frames())
+        if qc.get("scored"):
+            summary["qc"] = qc
         problems = store.verify() if verify else None
     finally:
         store.close()

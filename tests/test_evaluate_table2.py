@@ -1,0 +1,184 @@
+"""Table 2 from per-image records: means, paired tests, marks, mTC per lighting — checked by hand."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from m2s2hil.analysis import table2
+from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.analysis.evaluate import EvalOptions, EvaluationResult, labels_to_cube, speed_accuracy
+from m2s2hil.errors import UsageError
+
+
+def rec(i, sat="voyager", build="B2", elev="E0", light="weak", multi=None, rgb=None, mtc=None, truth=True):
+    res = {"spectral": {"time_s": 0.1 * (i + 1)}, "rgb": {"time_s": 0.05 * (i + 1)}}
+    if truth:
+        res["spectral"].update(multi)
+        res["rgb"].update(rgb)
+    if mtc is not None:
+        res["spectral"]["mtc"] = mtc
+    return {
+        "image_id": f"{sat}/{build}/{elev}/{light}/{i}",
+        "source": "s",
+        "satellite": sat,
+        "build": build,
+        "classes": 5,
+        "elevation": elev,
+        "lighting": light,
+        "azimuth_deg": 10.0 * i,
+        "has_truth": truth,
+        "error": None,
+        "results": res,
+    }
+
+
+def scores(p, r, d):
+    return {"precision": p, "recall": r, "dice": d, "micro_iou": d}
+
+
+def hand_p(a, b, rho):
+    a, b = np.asarray(a), np.asarray(b)
+    sa, sb = a.std(ddof=1), b.std(ddof=1)
+    sd = math.sqrt(sa**2 + sb**2 - 2 * rho * sa * sb)
+    t = (a - b).mean() / (sd / math.sqrt(a.size))
+    return t, 2 * stats.t.sf(abs(t), a.size - 1)
+
+
+# Dice: multi clearly better (p < 0.01 at ρ = 0.9); recall: rgb better only at α = 0.05; precision: equal-ish.
+MULTI_DICE = [0.80, 0.70, 0.90, 0.75]
+RGB_DICE = [0.60, 0.52, 0.69, 0.57]
+MULTI_REC = [0.60, 0.61, 0.58, 0.62]
+RGB_REC = [0.66, 0.62, 0.64, 0.70]
+MULTI_PREC = [0.5, 0.6, 0.7, 0.8]
+RGB_PREC = [0.8, 0.7, 0.6, 0.5]
+
+
+def records():
+    out = []
+    lights = ["weak", "weak", "directional", "directional"]
+    mtcs = [0.99, 0.97, 0.95, 0.93]
+    for i in range(4):
+        out.append(
+            rec(
+                i,
+                light=lights[i],
+                mtc=mtcs[i],
+                multi=scores(MULTI_PREC[i], MULTI_REC[i], MULTI_DICE[i]),
+                rgb=scores(RGB_PREC[i], RGB_REC[i], RGB_DICE[i]),
+            )
+        )
+    # Hubble B2 and B3 have the same class count: they must stay separate rows
+    out.append(rec(0, sat="hubble", build="B3", mtc=0.9, multi=scores(1, 1, 1), rgb=scores(1, 1, 1)))
+    out.append(rec(1, sat="hubble", build="B2", mtc=0.8, multi=scores(1, 1, 1), rgb=scores(1, 1, 1)))
+    # an image that failed is left out; an image without truth counts for mTC only
+    bad = rec(9, multi=scores(0, 0, 0), rgb=scores(1, 1, 1))
+    bad["error"] = "OSError: gone"
+    out.append(bad)
+    out.append(rec(5, light="strong", mtc=0.5, truth=False))
+    return out
+
+
+def test_rows_means_tests_and_mtc_by_hand():
+    rows = table2.build_rows(records(), multi="spectral", rgb="rgb", rho=0.9)
+    assert [(r.satellite_name, r.build) for r in rows] == [
+        ("Voyager", "B2"),
+        ("Hubble", "B2"),
+        ("Hubble", "B3"),
+    ]
+    v = rows[0]
+    assert v.n_images == 5 and v.n_truth == 4 and v.classes == 5
+    dice = v.cells["dice"]
+    assert dice.multi == pytest.approx(np.mean(MULTI_DICE)) and dice.rgb == pytest.approx(np.mean(RGB_DICE))
+    t, p = hand_p(MULTI_DICE, RGB_DICE, 0.9)
+    assert dice.test.t == pytest.approx(t) and dice.test.p == pytest.approx(p)
+    assert p < 0.01 and dice.stars == "**" and dice.winner == "multi"
+    t, p = hand_p(MULTI_REC, RGB_REC, 0.9)
+    assert v.cells["recall"].test.p == pytest.approx(p)
+    assert 0.01 <= p < 0.05 and v.cells["recall"].winner == "rgb" and v.cells["recall"].stars == "*"
+    assert v.cells["precision"].winner is None  # mean difference 0
+    assert v.mtc == {
+        "weak": (pytest.approx(0.98), 2),
+        "directional": (pytest.approx(0.94), 2),
+        "strong": (0.5, 1),
+    }
+
+
+def test_markdown_marks_and_csv_columns():
+    rows = table2.build_rows(records(), multi="spectral", rgb="rgb")
+    md = table2.to_markdown(rows, notes=["a note"])
+    line = next(x for x in md.splitlines() if x.startswith("| Voyager"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    # Sat Build Classes Elev Images | P rgb, multi | R rgb, multi | D rgb, multi | mTC Dir Weak Strong
+    assert cells[:5] == ["Voyager", "B2", "5", "E0", "5"]
+    assert cells[5:7] == ["0.6500", "0.6500"]
+    assert cells[7] == f"**{np.mean(RGB_REC):.4f}**\\*" and cells[8] == f"{np.mean(MULTI_REC):.4f}"
+    assert cells[9] == f"{np.mean(RGB_DICE):.4f}" and cells[10] == f"***{np.mean(MULTI_DICE):.4f}***\\*\\*"
+    assert cells[11:] == ["0.9400", "0.9800", "0.5000"]
+    assert "- a note" in md
+    hub = next(x for x in md.splitlines() if x.startswith("| Hubble | B3"))
+    assert "–" in hub  # one image: no test, no mark
+    data = list(csv.DictReader(io.StringIO(table2.to_csv(rows))))
+    assert data[0]["dice_mark"] == "**" and data[0]["dice_better"] == "multi"
+    assert float(data[0]["dice_p"]) == pytest.approx(hand_p(MULTI_DICE, RGB_DICE, 0.9)[1])
+    assert data[0]["recall_mark"] == "*" and data[0]["recall_better"] == "rgb"
+    assert data[1]["dice_p"] == "" and data[1]["mtc_weak"] == "0.8"
+
+
+def test_significance_sweep_lists_observed_rho():
+    recs = records()
+    rows = table2.build_rows(recs, multi="spectral", rgb="rgb")
+    md = table2.significance_markdown(recs, rows, multi="spectral", rgb="rgb")
+    line = next(x for x in md.splitlines() if "| Dice |" in x and "Voyager" in x)
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    r_obs = stats.pearsonr(MULTI_DICE, RGB_DICE).statistic
+    assert float(cells[-2]) == pytest.approx(r_obs, abs=1e-3)
+    assert float(cells[-1]) == pytest.approx(stats.ttest_rel(MULTI_DICE, RGB_DICE).pvalue, rel=1e-2)
+    assert float(cells[9]) == pytest.approx(hand_p(MULTI_DICE, RGB_DICE, 0.9)[1], rel=1e-2)
+
+
+def test_notes_say_when_there_is_no_ground_truth():
+    recs = [rec(i, truth=False, mtc=0.9) for i in range(3)]
+    res = EvaluationResult(recs, EvalOptions(), ["dataset x"], 1.0, {})
+    rows = table2.build_rows(recs, multi="spectral", rgb="rgb")
+    assert not rows[0].cells and rows[0].mtc == {"weak": (0.9, 3)}
+    text = " ".join(table2.notes(res, rows))
+    assert "only the ground-truth-free mTC" in text
+    md = table2.to_markdown(rows)
+    assert md.splitlines()[2].count("–") == 6
+
+
+def test_speed_accuracy_aggregates_per_segmenter():
+    pts = {p["segmenter"]: p for p in speed_accuracy(records())}
+    assert pts["spectral"]["images"] == 8  # every image that ran, with or without truth
+    assert pts["spectral"]["scored_images"] == 7
+    assert pts["rgb"]["time_mean_s"] == pytest.approx(np.mean([0.05, 0.1, 0.15, 0.2, 0.05, 0.1, 0.5, 0.3]))
+
+
+def test_labels_to_cube_majority_by_hand():
+    lab = np.array(
+        [
+            [1, 1, 2, 2],
+            [3, 3, 2, 0],
+            [0, 0, 5, 5],
+            [0, 4, 5, 4],
+        ]
+    )
+    # 2×2 cells: {1,1,3,3} tie → lowest id 1; {2,2,2,0} → 2; {0,0,0,4} → 0; {5,5,5,4} → 5
+    assert labels_to_cube(lab, (2, 2)).tolist() == [[1, 2], [0, 5]]
+    assert labels_to_cube(lab, (4, 4)).tolist() == lab.tolist()
+    with pytest.raises(AnalysisInputError):
+        labels_to_cube(lab, (3, 3))
+
+
+def test_options_refuse_an_rgb_segmenter_as_the_multispectral_one():
+    with pytest.raises(UsageError, match="RGB baseline"):
+        EvalOptions(multi="rgb")
+    with pytest.raises(UsageError):
+        EvalOptions(mtc_for="some")
+    assert EvalOptions(multi="spectral-smooth").segmenters == ("spectral-smooth", "rgb-smooth")
