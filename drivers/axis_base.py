@@ -11,6 +11,7 @@ how to command a move or a rotation, how to read the position and how to wait.
 from __future__ import annotations
 
 import logging
+import threading
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
@@ -67,6 +68,7 @@ class MotionController(Generic[E]):
         self.link = SerialLink(url, device=device, baudrate=baudrate, timeout_s=timeout_s, clock=clock)
         self._rx = receiver
         self._events: deque[E] = deque()
+        self._lock = threading.RLock()  # one transaction at a time (see drivers.locking)
 
     def close(self) -> None:
         self.link.close()

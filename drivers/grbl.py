@@ -33,6 +33,7 @@ from m2s2hil.drivers.errors import (
     ProtocolError,
     StageAlarm,
 )
+from m2s2hil.drivers.locking import one_at_a_time
 from m2s2hil.protocols.grbl import (
     AXES,
     BUILD_INFO,
@@ -317,6 +318,7 @@ class GrblController(MotionController[Event]):
         self.link.drain_input()
         self._forget()
 
+    @one_at_a_time
     def _command_once(self, data: bytes, text: str, timeout: float | None, attempt: int) -> list[Event]:
         self._check_critical(text)
         self._drain_pending(text)
@@ -367,6 +369,7 @@ class GrblController(MotionController[Event]):
                 self.messages.append(ev.text)
             collected.append(ev)
 
+    @one_at_a_time
     def _status_once(self, attempt: int) -> StatusReport:
         self._check_critical("?")
         self._drain_pending("?")
@@ -387,6 +390,7 @@ class GrblController(MotionController[Event]):
                 )
             self._handle_async(ev, "?", attempt)
 
+    @one_at_a_time
     def _reset_once(self, attempt: int) -> Banner:
         self.link.drain_input()
         self._forget()

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import CommandRejected, DeviceGone, ProtocolError, RelayNotSwitched
-from m2s2hil.drivers.relay_base import RelayBoardBase, one_at_a_time
+from m2s2hil.drivers.locking import one_at_a_time
+from m2s2hil.drivers.relay_base import RelayBoardBase
 from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.protocols.modbus_relay import (
     NEED_DATA,

@@ -9,31 +9,18 @@ transactions: writing the whole mask, reading the relays, switching one.
 
 from __future__ import annotations
 
-import functools
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
-from typing import Any, Self, TypeVar
+from typing import Self, TypeVar
 
 from m2s2hil.drivers.clock import Clock
 from m2s2hil.drivers.errors import DeviceError, DeviceGone, DeviceTimeout, ProtocolError, RelayNotSwitched
+from m2s2hil.drivers.locking import one_at_a_time
 from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.protocols.errors import CodecError
 
 T = TypeVar("T")
-_F = TypeVar("_F", bound=Callable[..., Any])
-
-
-def one_at_a_time(method: _F) -> _F:
-    """Serialise public calls: a write and its read-back must not interleave with another
-    thread's transaction on the same line (the engine sets lamps while the API reads them)."""
-
-    @functools.wraps(method)
-    def wrapper(self, *args: Any, **kwargs: Any) -> Any:
-        with self._lock:
-            return method(self, *args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
 
 
 class RelayBoardBase(ABC):

@@ -27,6 +27,7 @@ from m2s2hil.drivers.errors import (
     ProtocolError,
     StageAlarm,
 )
+from m2s2hil.drivers.locking import one_at_a_time
 from m2s2hil.protocols.zaber import (
     ACCEL_DATA_PER_USTEP_S2,
     MAX_MESSAGE_ID,
@@ -178,6 +179,7 @@ class ZaberDevice(MotionController[Event]):
         while self._events:
             log.info("%s: dropped stale %r", self.device, self._events.popleft())
 
+    @one_at_a_time
     def _request_once(self, axis: int, text: str, timeout: float | None, attempt: int, check: bool) -> Reply:
         self._drain_stale(text)
         mid = self._take_id()

@@ -20,7 +20,7 @@ app = typer.Typer(
 
 
 def _register() -> None:
-    from m2s2hil.commands import evaluate, export, importer, rig, sessions, sim, sim_serve
+    from m2s2hil.commands import evaluate, export, importer, rig, serve, sessions, sim, sim_serve
 
     sim.app.command("serve")(sim_serve.serve)
     app.add_typer(sim.app, name="sim")
@@ -30,6 +30,7 @@ def _register() -> None:
     app.command("import")(importer.import_cmd)
     app.command("evaluate")(evaluate.evaluate_cmd)
     app.command("report")(evaluate.report_cmd)
+    app.command("serve")(serve.serve)
 
 
 _register()

@@ -658,6 +658,11 @@ class Engine:
         if state is S.PAUSING:
             self._park()
 
+    def _stop_if_aborting(self) -> None:
+        with self._lock:
+            if self._state is S.ABORTING:
+                raise _AbortRequested
+
     def _park(self, reason: str | None = None) -> None:
         """Go to ``paused`` (lamps off, motion stopped) and wait for resume or abort."""
         with self._lock:
@@ -722,6 +727,7 @@ class Engine:
             todo = [e for e in unit if self._is_pending(e)]
             if not todo:
                 return
+            self._stop_if_aborting()
             try:
                 self._attempt = sum(failures.values()) + 1
                 self._capture(todo)
@@ -743,6 +749,9 @@ class Engine:
                 self._forget_after(err)
                 with contextlib.suppress(Exception):
                     self.rig.camera.stop_stream()
+                # An abort (e.g. an emergency stop that caused this very fault) wins over any
+                # recovery: never re-home, move or relight after it was asked for.
+                self._stop_if_aborting()
                 if decision.retries:
                     try:
                         if decision.reconnect:

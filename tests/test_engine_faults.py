@@ -159,3 +159,24 @@ def test_teardown_that_cannot_switch_lamps_off_still_stops_motion_and_says_so(tm
         assert rig.world.lamps_on()  # honest: the lamps really are still on
         rig.lights.failures = 0
         rig.lights.set(())
+
+
+def test_abort_during_a_fault_wins_over_the_recovery(tmp_path) -> None:
+    """An emergency stop that causes a fault must not be followed by a re-home and a retry."""
+    stall = {"stage": [{"kind": "stall", "after": 2}]}
+    with session(tmp_path, faults=stall) as (rig, _store, engine, _events):
+        stage = rig.extras["sims"]["stage"]
+        seen: dict[str, int] = {}
+
+        def on_fault(e) -> None:
+            if isinstance(e, FaultRecorded) and "bytes" not in seen:
+                seen["bytes"] = len(stage.received)
+                engine.abort()
+
+        engine.subscribe(on_fault)
+        st = engine.run()
+        assert st.state is S.ABORTED
+        after = bytes(stage.received[seen["bytes"] :])
+        assert b"$H" not in after  # no homing after the abort ...
+        assert b"G0" not in after and b"G1" not in after  # ... and no further move
+        assert_rig_safe(rig)

@@ -377,3 +377,32 @@ def test_third_party_client_speaks_grbl_to_the_simulator():
             assert report.startswith(b"<Idle|MPos:5.000,0.000,0.000|FS:0,0")
         finally:
             port.close()
+
+
+def test_threads_share_the_line_one_transaction_at_a_time():
+    """The engine polls status while the API reads it: replies must never cross."""
+    import threading
+
+    sim = GrblSimulator("locked", RealClock(), settings={22: 0})
+    with PtyServer(sim) as srv:
+        ctl = GrblController(srv.path, device="stage", timeout_s=2.0, retries=0)
+        ctl.connect()
+        errors: list[BaseException] = []
+
+        def hammer(fn) -> None:
+            try:
+                for _ in range(40):
+                    fn()
+            except BaseException as exc:  # collected and asserted below
+                errors.append(exc)
+
+        threads = [
+            threading.Thread(target=hammer, args=(ctl.status,)),
+            threading.Thread(target=hammer, args=(lambda: ctl.command("G90", idempotent=True),)),
+        ]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=60)
+        ctl.close()
+    assert errors == []

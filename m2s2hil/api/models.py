@@ -1,0 +1,180 @@
+"""Request and response bodies of the REST API (the POST body itself is :class:`m2s2hil.plan.Sweep`)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from m2s2hil.store import SESSION_ID_RE
+
+SESSION_ID_PATTERN = SESSION_ID_RE.pattern
+
+#: Every state a session can be reported in. Engine states, plus ``queued`` (waiting for
+#: the rig), ``cancelled`` (left the queue before running), ``created`` (accepted, not yet
+#: queued), ``interrupted`` (parked by a daemon shutdown), ``corrupt`` (unreadable journal).
+SessionState = Literal[
+    "created", "queued", "idle", "running", "pausing", "paused", "aborting", "completed", "failed",
+    "aborted", "cancelled", "interrupted", "corrupt",
+]
+_STATE_DOC = "One of: " + ", ".join(SessionState.__args__) + " (see docs/api.md)."
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ErrorBody(_Out):
+    detail: str = Field(description="What was wrong with the request, and where.")
+    errors: list[dict[str, Any]] | None = Field(default=None, description="Each validation problem.")
+
+
+class Links(_Out):
+    self: str
+    events: str
+    frames: str
+
+
+class FaultOut(_Out):
+    time_s: float
+    fault_class: str
+    action: str
+    message: str
+    event_id: str | None = None
+    attempt: int = 1
+    device: str | None = None
+
+
+class SessionStatus(_Out):
+    session_id: str
+    state: str = Field(description=_STATE_DOC)
+    live: bool = Field(description="The session is known to this daemon process (queued, running or "
+                                   "finished since it started); otherwise read from the journal.")
+    queue_position: int | None = Field(default=None, description="1 = next to run; null when not queued.")
+    resumable: bool = Field(default=False, description="Interrupted: POST …/resume queues it again.")
+    satellite: str | None = None
+    build: str | None = None
+    mode: str | None = None
+    done: int = 0
+    total: int = 0
+    skipped: int = 0
+    progress: float = 0.0
+    eta_s: float | None = None
+    elapsed_s: float | None = None
+    lighting: str | None = None
+    elevation: str | None = None
+    tilt_deg: float | None = None
+    azimuth_deg: float | None = None
+    lamps_on: list[int] = Field(default_factory=list)
+    last_frame_index: int | None = None
+    last_event_id: str | None = None
+    faults: list[FaultOut] = Field(default_factory=list)
+    pause_reason: str | None = None
+    error: str | None = None
+    efficiency: float | None = None
+    created: float | None = None
+    updated: float | None = None
+    links: Links
+
+
+class SessionCreated(_Out):
+    session_id: str
+    url: str
+    state: str = Field(description=_STATE_DOC)
+    queue_position: int | None = None
+    planned_events: int
+    links: Links
+
+
+class SessionPage(_Out):
+    items: list[SessionStatus]
+    total: int
+    offset: int
+    limit: int
+
+
+class FileOut(_Out):
+    path: str = Field(description="Relative to the session folder.")
+    sha256: str
+    bytes: int
+
+
+class FrameOut(_Out):
+    n: int = Field(description="The frame's index in the expanded plan (the {n} of the frame URLs).")
+    event_id: str
+    time: float
+    dark_id: str | None
+    files: dict[str, FileOut]
+    meta: dict[str, Any]
+    preview_url: str | None
+    raw_url: str
+
+
+class FramePage(_Out):
+    items: list[FrameOut]
+    total: int
+    offset: int
+    limit: int
+
+
+class QueueEntry(_Out):
+    session_id: str
+    position: int
+    resume: bool
+    queued_at: float
+
+
+class QueueState(_Out):
+    running: str | None
+    held: str | None = Field(description="Why the queue is held (no session starts until released).")
+    limit: int
+    items: list[QueueEntry]
+
+
+class DeviceState(_Out):
+    name: str
+    kind: Literal["motion", "relay", "camera"]
+    protocol: str
+    port: str
+    health: Literal["ok", "error", "busy"] = Field(
+        description="busy: a session owns the device; state is the engine's last read-back.")
+    state: dict[str, Any]
+    error: str | None = None
+    recent_faults: int = 0
+
+
+class RigState(_Out):
+    name: str
+    simulated: bool
+    digest: str
+    session_id: str | None = Field(description="The session that owns the rig, if any.")
+    held: str | None
+    devices: list[DeviceState]
+
+
+class StopReport(_Out):
+    safe: bool = Field(description="Lamps read back off and no axis reports motion.")
+    lamps_on: list[int]
+    moving: dict[str, bool]
+    session_id: str | None = Field(description="The session aborted by the stop, if one was running.")
+    session_state: str | None
+    held: str = Field(description="The queue is held until POST /queue/release.")
+    errors: list[str]
+    elapsed_s: float
+
+
+class Health(_Out):
+    status: Literal["ok", "degraded"]
+    version: str
+    rig: str
+    simulated: bool
+    data_root_writable: bool
+    running: str | None
+    queued: int
+    held: str | None
+    uptime_s: float
+
+
+class PageParams(_Out):
+    offset: Annotated[int, Field(ge=0)] = 0
+    limit: Annotated[int, Field(ge=1, le=500)] = 50

@@ -1,0 +1,207 @@
+"""REST round trips through httpx (Starlette's TestClient) against the app: sessions, frames,
+control, queueing, errors."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+
+import numpy as np
+import pytest
+from api_support import daemon, long_sweep, sweep
+from PIL import Image
+
+from m2s2hil.frame_files import decode_tiff
+from m2s2hil.store import SessionStore
+
+
+@pytest.fixture
+def d(tmp_path):
+    with daemon(tmp_path / "data") as dm:
+        yield dm
+
+
+def test_create_run_and_read_back(d) -> None:
+    r = d.client.post("/sessions", json=sweep())
+    assert r.status_code == 202
+    body = r.json()
+    sid = body["session_id"]
+    assert r.headers["location"].endswith(f"/sessions/{sid}") and body["url"] == r.headers["location"]
+    assert body["planned_events"] == 5  # one dark + 4 azimuths
+    st = d.wait_done(sid)
+    assert st["state"] == "completed" and st["done"] == st["total"] == 5 and st["progress"] == 1.0
+    assert st["eta_s"] == 0.0 and st["lamps_on"] == [] and st["live"] is True
+
+    frames = d.client.get(f"/sessions/{sid}/frames").json()
+    assert frames["total"] == 4
+    store = SessionStore.open(d.root, sid)
+    try:
+        stored = {f.index: f for f in store.frames()}
+    finally:
+        store.close()
+    assert sorted(i["n"] for i in frames["items"]) == sorted(stored)
+    item = frames["items"][0]
+    pose = stored[item["n"]].meta["pose"]
+    assert item["meta"]["pose"]["turntable_deg"] == pytest.approx(pose["turntable_deg"])
+    raw = d.client.get(item["raw_url"])
+    assert raw.status_code == 200 and raw.headers["content-type"] == "image/tiff"
+    assert hashlib.sha256(raw.content).hexdigest() == item["files"]["raw"]["sha256"]
+    arr, desc = decode_tiff(raw.content)
+    assert desc["session_id"] == sid and desc["event"]["index"] == item["n"]
+    assert arr.shape == (256, 256) and arr.dtype == np.uint16
+    png = d.client.get(item["preview_url"])
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert Image.open(io.BytesIO(png.content)).mode == "RGB"
+
+    # pagination and a second look from the journal (as after a daemon restart)
+    page = d.client.get(f"/sessions/{sid}/frames", params={"offset": 1, "limit": 2}).json()
+    assert [i["n"] for i in page["items"]] == [i["n"] for i in frames["items"][1:3]]
+    d.manager._jobs.clear()  # forget the live job: status now comes from disk
+    disk = d.client.get(f"/sessions/{sid}").json()
+    assert disk["live"] is False and disk["state"] == "completed" and disk["done"] == 5
+
+
+def test_list_filter_and_paginate(d) -> None:
+    ids = []
+    for sat, build in (("voyager", "B3"), ("iss", "B1"), ("voyager", "B1")):
+        r = d.client.post("/sessions", json=sweep(satellite=sat, build=build))
+        assert r.status_code == 202
+        ids.append(r.json()["session_id"])
+    for sid in ids:
+        d.wait_done(sid)
+    all_ = d.client.get("/sessions").json()
+    assert all_["total"] == 3 and {s["session_id"] for s in all_["items"]} == set(ids)
+    voy = d.client.get("/sessions", params={"satellite": "Voyager"}).json()
+    assert {s["session_id"] for s in voy["items"]} == {ids[0], ids[2]}
+    b1 = d.client.get("/sessions", params={"build": "B1", "state": "completed"}).json()
+    assert {s["session_id"] for s in b1["items"]} == {ids[1], ids[2]}
+    p1 = d.client.get("/sessions", params={"limit": 2}).json()
+    p2 = d.client.get("/sessions", params={"limit": 2, "offset": 2}).json()
+    assert p1["total"] == p2["total"] == 3 and len(p1["items"]) == 2 and len(p2["items"]) == 1
+    assert {s["session_id"] for s in p1["items"] + p2["items"]} == set(ids)
+    assert d.client.get("/sessions", params={"state": "paused"}).json()["total"] == 0
+
+
+def test_queue_is_fifo_visible_and_cancellable(tmp_path) -> None:
+    with daemon(tmp_path / "data") as d:
+        d.manager.hold("test: hold the queue")
+        ids = [d.client.post("/sessions", json=sweep(azimuth_step_deg=step)).json()["session_id"]
+               for step in (90, 120, 180)]
+        q = d.client.get("/queue").json()
+        assert q["running"] is None and q["held"] == "test: hold the queue"
+        queued = [(i["session_id"], i["position"]) for i in q["items"]]
+        assert queued == [(s, n) for n, s in enumerate(ids, 1)]
+        assert d.client.get(f"/sessions/{ids[1]}").json()["queue_position"] == 2
+
+        # a queued session cannot be paused or resumed; abort cancels it
+        for action in ("pause", "resume"):
+            r = d.client.post(f"/sessions/{ids[1]}/{action}")
+            assert r.status_code == 409 and "queued (position 2)" in r.json()["detail"]
+        r = d.client.post(f"/sessions/{ids[1]}/abort")
+        assert r.status_code == 200 and r.json()["state"] == "cancelled"
+        assert [i["session_id"] for i in d.client.get("/queue").json()["items"]] == [ids[0], ids[2]]
+
+        d.client.post("/queue/release")
+        for sid in (ids[0], ids[2]):
+            assert d.wait_done(sid)["state"] == "completed"
+        starts = {}
+        for sid in ids:
+            store = SessionStore.open(d.root, sid)
+            try:
+                starts[sid] = [e["time"] for e in store.events() if e["kind"] == "run_started"]
+                assert store.state == ("cancelled" if sid == ids[1] else "completed")
+            finally:
+                store.close()
+        assert starts[ids[1]] == []  # the cancelled one never ran
+        assert starts[ids[0]][0] < starts[ids[2]][0]  # first in, first out
+        assert d.client.post(f"/sessions/{ids[1]}/resume").status_code == 409
+
+
+def test_queue_limit_answers_429(tmp_path) -> None:
+    with daemon(tmp_path / "data", queue_limit=1) as d:
+        d.manager.hold("test")
+        assert d.client.post("/sessions", json=sweep()).status_code == 202
+        r = d.client.post("/sessions", json=sweep())
+        assert r.status_code == 429 and "limit 1" in r.json()["detail"] and r.headers["retry-after"]
+
+
+def test_pause_resume_abort_a_running_session(d) -> None:
+    sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
+    d.wait_state(sid, "running")
+    r = d.client.post(f"/sessions/{sid}/pause")
+    assert r.status_code == 200 and r.json()["state"] in ("pausing", "paused")
+    st = d.wait_state(sid, "paused")
+    assert st["pause_reason"] == "operator" and d.rig.world.lamps_on() == frozenset()
+    done_at_pause = st["done"]
+    r = d.client.post(f"/sessions/{sid}/pause")
+    assert r.status_code == 409 and "cannot pause while paused" in r.json()["detail"]
+    assert d.client.get(f"/sessions/{sid}").json()["done"] == done_at_pause  # parked: nothing captured
+    assert d.client.post(f"/sessions/{sid}/resume").status_code == 200
+    d.wait(sid, lambda s: s["done"] > done_at_pause)
+    assert d.client.post(f"/sessions/{sid}/abort").status_code == 200
+    st = d.wait_done(sid)
+    assert st["state"] == "aborted" and st["done"] < st["total"]
+    r = d.client.post(f"/sessions/{sid}/resume")
+    assert r.status_code == 409 and "aborted" in r.json()["detail"]
+
+
+def test_resume_an_interrupted_session_from_disk(tmp_path) -> None:
+    root = tmp_path / "data"
+    with daemon(root) as d:
+        sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
+        d.wait(sid, lambda s: s["done"] >= 3)
+        d.manager.close(timeout=30)  # as on SIGTERM: parks the session and marks it interrupted
+    with daemon(root) as d:  # a new daemon without automatic resumption
+        st = d.client.get(f"/sessions/{sid}").json()
+        assert st["state"] == "interrupted" and st["resumable"] and not st["live"]
+        before = st["done"]
+        r = d.client.post(f"/sessions/{sid}/resume")
+        assert r.status_code == 200 and r.json()["state"] in ("queued", "running", "idle")
+        st = d.wait_done(sid)
+        assert st["state"] == "completed" and st["done"] == st["total"] > before
+        store = SessionStore.open(root, sid)
+        try:
+            ids = [f.event_id for f in store.frames()]
+        finally:
+            store.close()
+        assert len(ids) == len(set(ids)) == 108
+
+
+@pytest.mark.parametrize(("body", "where"), [
+    ({"satellite": "apollo", "build": "B1"}, "body.satellite: unknown satellite 'apollo'"),
+    ({"satellite": "iss", "build": "B9"}, "body.build"),
+    ({"satellite": "iss", "build": "B1", "lighting": ["all"]}, "'all' is not a lighting condition"),
+    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 0}, "body.azimuth_step_deg: Input should be"),
+    ({"satellite": "iss", "build": "B1", "colour": "red"}, "body.colour: Extra inputs are not permitted"),
+    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 0.001}, "at most 20000"),
+    ({"satellite": "iss", "build": "B1", "processing": "magic"}, "body.processing: unknown demosaicing"),
+    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 1e-300}, "too many frames"),
+])
+def test_invalid_sweeps_get_422_with_the_place(d, body, where) -> None:
+    r = d.client.post("/sessions", json=body)
+    assert r.status_code == 422, r.text
+    assert where in r.json()["detail"]
+
+
+def test_malformed_requests(d) -> None:
+    r = d.client.post("/sessions", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "JSON" in r.json()["detail"]
+    r = d.client.get("/sessions/no-such-session")
+    assert r.status_code == 404 and "no session 'no-such-session'" in r.json()["detail"]
+    for bad in (".hidden", "a b", "x" * 200):
+        assert d.client.get(f"/sessions/{bad}").status_code == 422
+    r = d.client.get("/sessions", params={"limit": 0})
+    assert r.status_code == 422 and r.json()["detail"].startswith("query.limit:")
+    assert d.client.get("/sessions", params={"state": "sleeping"}).status_code == 422
+    assert d.client.post("/sessions/no-such-session/pause").status_code == 404
+
+
+def test_frames_of_unknown_things(d) -> None:
+    sid = d.client.post("/sessions", json=sweep()).json()["session_id"]
+    d.wait_done(sid)
+    r = d.client.get(f"/sessions/{sid}/frames/999/raw")
+    assert r.status_code == 404 and "no frame 999" in r.json()["detail"]
+    r = d.client.get(f"/sessions/{sid}/frames/0/raw")  # index 0 is the master dark, not a frame
+    assert r.status_code == 404
+    assert d.client.get(f"/sessions/{sid}/frames/-1/raw").status_code == 422
+    assert d.client.get(f"/sessions/{sid}/frames/{2**40}/raw").status_code == 422
