@@ -127,8 +127,10 @@ def _make_device_sim(name: str, dev: DeviceConfig, config: RigConfig, clock: Any
             )
         sim = GrblSimulator(name, clock, axes=settings, faults=faults)
         for role, ax in axes.items():
+            # Timed: the camera asks where the stage was during an exposure already over.
             world.attach_axis(
-                role, lambda s=sim, a=ax: s.axis_position(a.axis.upper()) / a.units_per_degree
+                role, lambda t, s=sim, a=ax: s.axis_position(a.axis.upper(), t) / a.units_per_degree,
+                timed=True,
             )
         return sim
     if dev.protocol == "zaber":

@@ -30,6 +30,10 @@ No banner at construction (a board that booted before the host opened the port);
 a vanished port is a power cycle: position is lost (MPos 0 where the axis stands),
 and the banner greets the host when the port comes back.
 
+For the simulated world, :meth:`GrblSimulator.axis_position` also answers for a moment
+just past (``at=``): a camera renders a frame after its exposure, so it asks where the
+axis was during it (the recent path is kept in a :class:`PathLog`).
+
 Faults (``self.faults``): ``stall`` (``fraction``, default 0.5) stops the next move
 part-way and reports Idle there; ``alarm`` (``code`` default 1, ``at`` default 0.5 of
 the move) raises that alarm mid-move (during ``$H``: ALARM:9, then a reset).
@@ -73,7 +77,7 @@ from m2s2hil.protocols.grbl import (
 from m2s2hil.simulators.device import SimDevice
 from m2s2hil.simulators.faults import FaultPlan
 from m2s2hil.simulators.grbl_gcode import GcodeError, Modal, parse_block
-from m2s2hil.simulators.motion_kit import InOrderReplies, Segment, Trapezoid
+from m2s2hil.simulators.motion_kit import InOrderReplies, PathLog, Segment, Trapezoid
 
 PLANNER_BLOCKS = 15
 _SETTING_WRITE = re.compile(r"\$(\d+(?:\.\d*)?)=(.*)")
@@ -136,6 +140,8 @@ class GrblSimulator(InOrderReplies, SimDevice):
         self._rest: tuple[float, ...] = (0.0, 0.0, 0.0)
         self._state = "Alarm" if self.settings[22] else "Idle"
         self._reset_volatile()
+        self._path = PathLog()  # physical positions over the recent motion changes
+        self._note(clock.monotonic())
 
     def _reset_volatile(self) -> None:
         self._rx = bytearray()
@@ -151,13 +157,16 @@ class GrblSimulator(InOrderReplies, SimDevice):
         self._ov_counter = 0
 
     # -- inspection (tests, the simulated world) -------------------------------------
-    def axis_position(self, letter: str) -> float:
-        """Where the axis physically is now, in machine units from its home switch."""
+    def axis_position(self, letter: str, at: float | None = None) -> float:
+        """Where the axis physically is, in machine units from its home switch: now, or at
+        clock time ``at`` (any moment since the last 16 motion changes; see :class:`PathLog`)."""
         i = AXES.index(letter.upper())
         with self.lock:
             now = self.clock.monotonic()
             self._advance(now)
-            return self._position(now)[i] + self._offset[i]
+            if at is None:
+                return self._position(now)[i] + self._offset[i]
+            return self._path.at(float(at))[i]
 
     def machine_position(self) -> tuple[float, ...]:
         """MPos as the controller would report it now."""
@@ -185,6 +194,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
                     self._process_lines(now)
             else:
                 self.rx_overflow += 1
+        self._note(now)
 
     def poll(self, now: float) -> None:
         self._advance(now)
@@ -206,6 +216,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
         self._reset_volatile()
         self._state = "Alarm" if self.settings[22] else "Idle"
         self.forget_order()
+        self._note(now)
 
     def on_reconnect(self) -> None:
         self._greet()
@@ -213,6 +224,16 @@ class GrblSimulator(InOrderReplies, SimDevice):
     # -- time --------------------------------------------------------------------------
     def _position(self, now: float) -> tuple[float, ...]:
         return self._segment.position(now) if self._segment is not None else self._rest
+
+    def _note(self, t: float) -> None:
+        """Log the motion from ``t`` on (a no-op unless segment, rest or offset changed)."""
+        seg, off = self._segment, tuple(self._offset)
+        if seg is None:
+            rest = tuple(r + o for r, o in zip(self._rest, off, strict=True))
+            self._path.note(t, (None, rest), lambda _t, p=rest: p)
+        else:
+            self._path.note(seg.t0, (seg, off), lambda t_, s=seg, o=off: tuple(
+                p + q for p, q in zip(s.position(t_), o, strict=True)))
 
     def _advance(self, now: float) -> None:
         while True:
@@ -224,6 +245,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
                 self._segment, self._current = None, None
                 self._queue.clear()
                 self._alarm(alarm[1])
+                self._note(alarm[0])
                 continue
             if seg is None or seg.t_end > now:
                 break
@@ -242,7 +264,9 @@ class GrblSimulator(InOrderReplies, SimDevice):
                 self._finish_homing()
             else:
                 self._start_next(t)
+            self._note(t)
         self._process_lines(now)
+        self._note(now)
 
     def _limits(
         self, start: tuple[float, ...], end: tuple[float, ...], feed: float | None

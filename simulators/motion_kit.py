@@ -1,14 +1,17 @@
-"""Pieces both motion simulators share: trapezoidal moves timed on the clock, and
-replies that stay in order.
+"""Pieces both motion simulators share: trapezoidal moves timed on the clock, a log of
+the recent path, and replies that stay in order.
 
 A move is computed, not stepped: :class:`Segment` knows where it is at any time ``t``
 from its start time and a :class:`Trapezoid` speed profile, so a virtual clock can
-jump over a long move and the position is still exact.
+jump over a long move and the position is still exact. :class:`PathLog` keeps the last
+few motion changes so the position at a moment just past can be asked after the fact.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -149,6 +152,43 @@ class Segment:
         if self.stop_after is not None and t >= self.t_end:
             return 0.0
         return self.profile.speed(t - self.t0)
+
+
+class PathLog:
+    """The recent path of a simulated axis: pieces "from time ``t`` on, the axis is at ``at(t)``".
+
+    A simulator notes a piece whenever its motion changes (a move starts, ends, is braked
+    or cut short), so :meth:`at` answers for any moment since the oldest piece kept: a
+    camera renders a frame once its exposure is over, when the move it saw may already
+    have ended. Earlier moments get the oldest piece's answer; a moment ahead of the last
+    change gets the motion as planned at that change (later commands are not foreseen).
+    """
+
+    def __init__(self, keep: int = 16) -> None:
+        self._pieces: deque[tuple[float, Callable[[float], Any]]] = deque(maxlen=keep)
+        self._key: tuple[Any, ...] | None = None
+
+    def note(self, t: float, key: tuple[Any, ...], at: Callable[[float], Any]) -> None:
+        """From ``t`` on the axis follows ``at``; ignored while ``key`` is unchanged (items
+        compared by identity or equality), so it can be called after every event."""
+        old = self._key
+        if old is not None and len(old) == len(key) and all(
+                a is b or a == b for a, b in zip(old, key, strict=True)):
+            return
+        self._key = key
+        if self._pieces:
+            t = max(t, self._pieces[-1][0])  # pieces stay in time order
+            if self._pieces[-1][0] == t:
+                self._pieces.pop()  # the previous piece lasted no time at all
+        self._pieces.append((t, at))
+
+    def at(self, t: float) -> Any:
+        if not self._pieces:
+            raise LookupError("no motion noted yet")
+        for t_from, fn in reversed(self._pieces):
+            if t_from <= t:
+                return fn(t)
+        return self._pieces[0][1](t)
 
 
 class InOrderReplies:

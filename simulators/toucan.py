@@ -13,8 +13,12 @@ Frame content comes from a pluggable source::
         def capture(self, exposure_s: float, gain: float) -> np.ndarray: ...
 
 returning a uint16 (height, width) mosaic with values below ``2**bit_depth``; ``gain``
-is the linear factor of the ``Gain`` feature. The values travel unshifted in every
-pixel format (Mono12/Mono16 carry the same 10-bit numbers as Mono10).
+is the linear factor of the ``Gain`` feature. A source whose ``capture`` also takes a
+``start_s`` keyword is told when the frame's exposure began (clock time: the trigger,
+or the free-running frame clock), so it can render the exposure interval, motion
+included; the camera renders a frame when the host starts reading it, after the
+exposure. The values travel unshifted in every pixel format (Mono12/Mono16 carry the
+same 10-bit numbers as Mono10).
 
 Faults (``self.faults``), each drawn once per frame when the frame is due:
 ``unplug`` (``duration_s``, default 1.0: the device leaves the bus, I/O fails with
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.resources
+import inspect
 import io
 import math
 import struct
@@ -717,7 +722,10 @@ class ToucanCamera:
         return chunk
 
     def _render(self, job: _Job) -> list[bytes | memoryview]:
-        img = self.frame_source.capture(job.exposure_s, job.gain)
+        if _takes_start(self.frame_source):
+            img = self.frame_source.capture(job.exposure_s, job.gain, start_s=job.start)
+        else:
+            img = self.frame_source.capture(job.exposure_s, job.gain)
         if img.shape != (self.height, self.width):
             raise ValueError(f"frame source gave {img.shape}, camera is {self.height}x{self.width}")
         payload = memoryview(u3v.encode_image(img, job.pixel_format)).cast("B")
@@ -744,3 +752,12 @@ class ToucanCamera:
         out.append(u3v.Trailer(job.block_id, job.trailer_status, pos, self.height).encode())
         self.sent_block_ids.append(job.block_id)
         return out
+
+
+def _takes_start(source: Any) -> bool:
+    """Whether ``source.capture`` accepts the ``start_s`` keyword."""
+    try:
+        params = inspect.signature(source.capture).parameters
+    except (TypeError, ValueError):
+        return False
+    return "start_s" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())

@@ -1,8 +1,10 @@
 """The simulated world the devices share: stage pose, lamps, lens cap, mockup.
 
 Motion simulators attach their axes (a function returning degrees at the current
-clock time); relay simulators set lamp channels; the camera simulator reads all of
-it to render a frame. Nothing here knows about bytes.
+clock time, or, attached ``timed``, at a given clock time, so the camera can ask where
+the stage was during an exposure that is already over); relay simulators set lamp
+channels; the camera simulator reads all of it to render a frame. Nothing here knows
+about bytes.
 """
 
 from __future__ import annotations
@@ -38,19 +40,35 @@ class World:
 
     def __post_init__(self) -> None:
         self._lock = threading.RLock()
-        self._axes: dict[str, Callable[[], float]] = {}
+        self._axes: dict[str, tuple[Callable[..., float], bool]] = {}
         self._lamp_on_since: dict[int, float] = {}
         self.version = 0  # bumped on every change a renderer may cache on
 
     # -- stage -----------------------------------------------------------------------
-    def attach_axis(self, role: str, degrees: Callable[[], float]) -> None:
+    def attach_axis(self, role: str, degrees: Callable[..., float], *, timed: bool = False) -> None:
+        """``degrees()`` gives the axis angle now; with ``timed``, ``degrees(t)`` gives it at
+        clock time ``t`` (a moment just past included). An axis attached without ``timed``
+        (a mirrored real axis) only knows where it is now, and answers that for any ``t``."""
         with self._lock:
-            self._axes[role] = degrees
+            self._axes[role] = (degrees, bool(timed))
+
+    def _angle(self, role: str, t: float | None) -> float:
+        fn, timed = self._axes.get(role, (None, False))
+        if fn is None:
+            return 0.0
+        if timed:
+            return float(fn(self.clock.monotonic() if t is None else t))
+        return float(fn())
 
     def pose(self) -> Pose:
+        """The stage pose now."""
+        return self.pose_at(None)
+
+    def pose_at(self, t: float | None) -> Pose:
+        """The stage pose at clock time ``t`` (None: now)."""
         with self._lock:
-            az = self._axes.get("turntable", lambda: 0.0)()
-            tilt = self._axes.get("tilt", lambda: 0.0)()
+            az = self._angle("turntable", t)
+            tilt = self._angle("tilt", t)
         return Pose(azimuth_deg=az, tilt_deg=tilt)
 
     # -- lamps -----------------------------------------------------------------------

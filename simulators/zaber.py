@@ -18,6 +18,9 @@ Assumptions: a command with a wrong checksum is dropped without a reply; a move 
 reverses a moving axis starts its new profile from rest. A vanished port does not
 reset the device (it has its own power supply).
 
+:meth:`ZaberSimulator.axis_position` also answers for a moment just past (``at=``), for
+a camera that renders a frame after its exposure (the recent path: a :class:`PathLog`).
+
 Faults (``self.faults``): ``stall`` (``fraction``, default 0.5) stops the next move
 part-way and sets ``FS``; ``alarm`` (``flag`` default ``FQ``, ``at`` default 0.5)
 stops it mid-move with that fault flag.
@@ -42,7 +45,7 @@ from m2s2hil.protocols.zaber import (
 )
 from m2s2hil.simulators.device import SimDevice
 from m2s2hil.simulators.faults import FaultPlan
-from m2s2hil.simulators.motion_kit import InOrderReplies, Segment, Trapezoid
+from m2s2hil.simulators.motion_kit import InOrderReplies, PathLog, Segment, Trapezoid
 
 AXIS_SETTINGS_RW = ("maxspeed", "accel", "limit.min", "limit.max", "pos")
 AXIS_SETTINGS_RO = ("resolution", "encoder.pos")
@@ -68,11 +71,22 @@ class _Axis:
     homed: bool = False
     flags: set[str] = field(default_factory=set)
     alarm: tuple[float, str] | None = None
+    path: PathLog = field(default_factory=PathLog)  # physical positions over the recent changes
 
     def position(self, now: float) -> float:
         if self.segment is None:
             return self.rest
         return self.rest + self.direction * self.segment.covered(now)
+
+    def note(self, t: float) -> None:
+        """Log the motion from ``t`` on (a no-op unless it changed)."""
+        seg = self.segment
+        if seg is None:
+            here = self.rest + self.offset
+            self.path.note(t, (None, here), lambda _t, p=here: p)
+        else:
+            base, d = self.rest + self.offset, self.direction
+            self.path.note(seg.t0, (seg, base, d), lambda t_, s=seg, b=base, d=d: b + d * s.covered(t_))
 
     def speed(self, now: float) -> float:
         return self.segment.speed(now) if self.segment is not None else 0.0
@@ -124,15 +138,20 @@ class ZaberSimulator(InOrderReplies, SimDevice):
         }
         self._parser = CommandParser()
         self.ignored = 0  # commands dropped for a bad checksum or a malformed line
+        for ax in self._axes:
+            ax.note(clock.monotonic())
 
     # -- inspection ------------------------------------------------------------------
-    def axis_position(self, axis: int = 1) -> float:
-        """Physical position in microsteps from the home sensor (for the simulated world)."""
+    def axis_position(self, axis: int = 1, at: float | None = None) -> float:
+        """Physical position in microsteps from the home sensor (for the simulated world):
+        now, or at clock time ``at`` (any moment since the axis' last 16 motion changes)."""
         with self.lock:
             now = self.clock.monotonic()
             self._advance(now)
             ax = self._axes[axis - 1]
-            return ax.position(now) + ax.offset
+            if at is None:
+                return ax.position(now) + ax.offset
+            return float(ax.path.at(float(at)))
 
     # -- SimDevice hooks -------------------------------------------------------------
     def on_bytes(self, data: bytes) -> None:
@@ -158,6 +177,8 @@ class ZaberSimulator(InOrderReplies, SimDevice):
                 data=data_out,
             )
             self.send(format_reply(reply, with_checksum=item.checksummed))
+        for ax in self._axes:
+            ax.note(now)
 
     def poll(self, now: float) -> None:
         self._advance(now)
@@ -177,9 +198,11 @@ class ZaberSimulator(InOrderReplies, SimDevice):
             if seg is None:
                 continue
             if ax.alarm is not None and ax.alarm[0] <= min(now, seg.t_end):
-                ax.rest = ax.position(ax.alarm[0])
+                when = ax.alarm[0]
+                ax.rest = ax.position(when)
                 ax.flags.add(ax.alarm[1])
                 ax.segment, ax.alarm = None, None
+                ax.note(when)
             elif seg.t_end <= now:
                 ax.rest = ax.position(seg.t_end)
                 ax.segment, ax.alarm = None, None
@@ -187,6 +210,7 @@ class ZaberSimulator(InOrderReplies, SimDevice):
                     ax.flags.add("FS")
                 if seg.kind == "home":
                     ax.offset, ax.rest, ax.homed = 0.0, 0.0, True
+                ax.note(seg.t_end)
 
     def _start(
         self, ax: _Axis, target: float, now: float, *, v_data: float | None = None, kind: str = "move"
@@ -339,6 +363,7 @@ def zaber_sim_for(
     if world is not None:
         for role, ax in axes.items():
             world.attach_axis(
-                role, lambda n=numbers[role], upd=ax.units_per_degree: sim.axis_position(n) / upd
+                role, lambda t, n=numbers[role], upd=ax.units_per_degree: sim.axis_position(n, t) / upd,
+                timed=True,
             )
     return sim
