@@ -2,13 +2,13 @@
 #
 # Build:  docker build -t m2s2hil .
 # Run on the simulated rig (loopback only inside the container, so publish with a token):
-#   docker run --rm -p 8765:8765 -e M2S2HIL_TOKEN=change-me -v m2s2-data:/data m2s2hil
+#   docker run --rm -p 8750:8750 -e M2S2HIL_TOKEN=change-me -v m2s2-data:/data m2s2hil
 # Run on a real rig: pass the devices through and mount a rig file, e.g.
-#   docker run --rm -p 8765:8765 -e M2S2HIL_TOKEN=change-me \
+#   docker run --rm -p 8750:8750 -e M2S2HIL_TOKEN=change-me \
 #     --device /dev/ttyUSB0 --device /dev/ttyUSB1 \
 #     --device /dev/bus/usb \            # the U3V camera (or one /dev/bus/usb/BBB/DDD node)
-#     -v /etc/m2s2hil/rig.toml:/config/rig.toml:ro -e M2S2HIL_RIG=/config/rig.toml \
-#     -v /srv/m2s2:/data m2s2hil
+#     -v /etc/m2s2hil/rig.toml:/config/rig.toml:ro -v /srv/m2s2:/data \
+#     m2s2hil m2s2hil serve --host 0.0.0.0 --port 8750 --rig /config/rig.toml --resume
 # The user in the image is in the dialout group (serial ports); USB nodes passed with
 # --device need to be readable by it (a udev rule on the host, or --group-add).
 FROM python:3.11-slim-bookworm
@@ -38,9 +38,9 @@ RUN useradd --create-home --uid 10001 --groups dialout m2s2 \
     && chown m2s2:m2s2 /data
 USER 10001
 VOLUME ["/data"]
-EXPOSE 8765
+EXPOSE 8750
 
 HEALTHCHECK --interval=30s --timeout=5s --start-period=20s --retries=3 \
-    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8765/healthz', timeout=4)"]
+    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8750/healthz', timeout=4)"]
 
-CMD ["m2s2hil", "serve", "--host", "0.0.0.0", "--port", "8765"]
+CMD ["m2s2hil", "serve", "--host", "0.0.0.0", "--port", "8750"]
