@@ -20,12 +20,13 @@ app = typer.Typer(
 
 
 def _register() -> None:
-    from m2s2hil.commands import evaluate, export, importer, rig, serve, sessions, sim, sim_serve
+    from m2s2hil.commands import bench, evaluate, export, importer, rig, serve, sessions, sim, sim_serve
 
     sim.app.command("serve")(sim_serve.serve)
     app.add_typer(sim.app, name="sim")
     app.add_typer(rig.app, name="rig")
     app.add_typer(sessions.app, name="sessions")
+    app.add_typer(bench.app, name="bench")
     app.command("export")(export.export_cmd)
     app.command("import")(importer.import_cmd)
     app.command("evaluate")(evaluate.evaluate_cmd)

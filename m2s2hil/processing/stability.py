@@ -1,0 +1,165 @@
+"""Detecting, from the data, the conditions under which demosaicing fails.
+
+- Saturation: raw pixels at full scale (flagged by ``subtract_dark``); demosaicing spreads a
+  clipped value over the method's support, so the cube's mask is the raw mask grown by it.
+- Phase error (the mosaic read with its origin off by a pixel, so every band is taken for
+  another): positions that hold the same band must agree on average. For every candidate
+  offset s the cost is the mean relative disagreement between the sub-lattice means of
+  positions the layout says are duplicates; the read is suspect when some s ≠ 0 explains the
+  data much better than s = 0. Needs a layout with duplicated bands and a scene whose bands
+  differ in mean level (true of any raw frame: filters and quantum efficiency differ).
+- Low light: the bright part of the frame (95th percentile) against the dark series' read
+  noise (an upper bound on SNR, shot noise comes on top), warned below SNR 5.
+High-frequency aliasing cannot be told from true texture in one frame: it is only measured
+(docs/processing.md), not warned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from m2s2hil.processing.mosaic import MosaicLayout
+
+LOW_SNR = 5.0
+
+
+@dataclass(frozen=True)
+class PhaseCheck:
+    offset: tuple[int, int]  # best-explaining (dy, dx); (0, 0) when the read looks right
+    cost_nominal: float  # relative disagreement of duplicates at offset (0, 0)
+    cost_best: float
+    conclusive: bool  # False when the layout or the scene cannot tell
+
+    @property
+    def suspect(self) -> bool:
+        return self.conclusive and self.offset != (0, 0)
+
+
+def sublattice_stats(mosaic: np.ndarray, n: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """(n, n) mean of each MSFA position over every ``step``-th row of cells (all columns), and the
+    standard error of those means (samples taken as independent)."""
+    h, w = mosaic.shape
+    rows = mosaic.reshape(h // n, n, w)[::step]  # whole rows: the sums below run on contiguous memory
+    count = rows.shape[0] * (w // n)
+    s1 = rows.sum(axis=0, dtype=np.float64).reshape(n, w // n, n).sum(axis=1)
+    sq = rows.astype(np.float32)
+    np.multiply(sq, sq, out=sq)
+    s2 = sq.sum(axis=0, dtype=np.float64).reshape(n, w // n, n).sum(axis=1)
+    mean = s1 / count
+    var = np.maximum(s2 / count - mean**2, 0.0)
+    return mean, np.sqrt(var / count)
+
+
+def sublattice_means(mosaic: np.ndarray, n: int, step: int = 8) -> np.ndarray:
+    """(n, n) mean of each MSFA position over every ``step``-th row of cells (all columns)."""
+    h, w = mosaic.shape
+    rows = mosaic.reshape(h // n, n, w)[::step]
+    per_col = rows.sum(axis=0, dtype=np.float64)  # (n, w)
+    return per_col.reshape(n, w // n, n).sum(axis=1) / (rows.shape[0] * (w // n))
+
+
+def duplicate_pairs(layout: MosaicLayout) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    return [(ps[0], p) for ps in layout.positions for p in ps[1:]]
+
+
+def check_phase(
+    mosaic: np.ndarray, layout: MosaicLayout, *, step: int = 8, ratio: float = 4.0, min_cost: float = 0.02
+) -> PhaseCheck:
+    """Which origin offset makes duplicated positions agree best (see module docstring).
+
+    ``offset`` is reported as the ``(dy, dx)`` for which ``layout.shifted(dy, dx)`` fits the data.
+    Suspect when cost(0) ≥ ``min_cost`` (2 % relative disagreement) and cost(0) ≥ ``ratio`` × the
+    best cost. Inconclusive (never suspect) when no offset makes duplicates disagree by more than
+    ``min_cost`` and 5 standard errors of the means: bands of equal level, or too few samples.
+    """
+    n = layout.n
+    pairs = duplicate_pairs(layout)
+    if not pairs:
+        return PhaseCheck((0, 0), 0.0, 0.0, conclusive=False)
+    mu, se = sublattice_stats(mosaic, n, step)
+    level = float(np.mean(mu))
+    if level <= 0:
+        return PhaseCheck((0, 0), 0.0, 0.0, conclusive=False)
+    # cost[s]: hypothesis "frame position q holds the band the layout puts at q − s"
+    cost = np.zeros((n, n))
+    for sy in range(n):
+        for sx in range(n):
+            diffs = [
+                abs(mu[(a[0] + sy) % n, (a[1] + sx) % n] - mu[(b[0] + sy) % n, (b[1] + sx) % n])
+                for a, b in pairs
+            ]
+            cost[sy, sx] = np.mean(diffs) / level
+    noise = 5.0 * float(np.sqrt(2.0) * np.mean(se)) / level
+    best = np.unravel_index(np.argmin(cost), cost.shape)
+    c0, cb = float(cost[0, 0]), float(cost[best])
+    conclusive = float(cost.max()) >= max(min_cost, noise)
+    suspect = conclusive and c0 >= max(min_cost, noise) and c0 >= ratio * cb
+    offset = (int(-best[0] % n), int(-best[1] % n)) if suspect else (0, 0)
+    return PhaseCheck(offset, c0, cb, conclusive=conclusive)
+
+
+def phase_warning(check: PhaseCheck) -> str | None:
+    if not check.suspect:
+        return None
+    dy, dx = check.offset
+    return (
+        f"MSFA phase looks wrong: duplicated bands disagree by {100 * check.cost_nominal:.1f} % at the "
+        f"nominal origin but by {100 * check.cost_best:.1f} % with the layout shifted by ({dy}, {dx}) "
+        "pixels; check the "
+        "sensor readout offset / ROI and the layout in the calibration file"
+    )
+
+
+def grow_mask(raw_mask: np.ndarray, radius: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Raw saturation mask grown by ``radius`` pixels (a (2r+1)² square), as bool."""
+    if out is None:
+        out = np.empty_like(raw_mask)
+    if radius <= 0:
+        np.copyto(out, raw_mask)
+        return out
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    grown = cv2.dilate(raw_mask.view(np.uint8), k)
+    np.not_equal(grown, 0, out=out)
+    return out
+
+
+def cell_mask(raw_mask: np.ndarray, n: int, out: np.ndarray | None = None) -> np.ndarray:
+    """True for every n×n cell that holds at least one flagged raw pixel."""
+    h, w = raw_mask.shape
+    return np.any(raw_mask.reshape(h // n, n, w // n, n), axis=(1, 3), out=out)
+
+
+def saturation_warning(raw_mask: np.ndarray, full_scale: int, radius: int) -> str | None:
+    count = int(np.count_nonzero(raw_mask))
+    if not count:
+        return None
+    frac = 100.0 * count / raw_mask.size
+    return (
+        f"{count} raw pixels ({frac:.2f} %) at full scale {full_scale}: their true values are unknown and "
+        f"every band within {radius} px of them is unreliable (see saturated_mask); shorten the exposure"
+    )
+
+
+def low_light_warning(mosaic: np.ndarray, read_noise_dn: float | None, n: int, step: int = 8) -> str | None:
+    """Warn when even the bright part of the frame (95th percentile) is below 5× the read noise.
+
+    A percentile rather than the median: M2S2 frames are mostly dark background around the
+    mockup, so the median says nothing about the object. Needs the dark series' read noise.
+    """
+    if not read_noise_dn or read_noise_dn <= 0:
+        return None
+    h, w = mosaic.shape
+    sample = mosaic.reshape(h // n, n, w // n, n)[::step, :, ::step, :].ravel()
+    k = int(0.95 * (sample.size - 1))
+    signal = float(np.partition(sample, k)[k])
+    snr = signal / read_noise_dn
+    if snr >= LOW_SNR:
+        return None
+    return (
+        f"very low light: the bright part of the frame (95th percentile, {signal:.1f} DN) is only "
+        f"{snr:.1f}× the read noise ({read_noise_dn:.2f} DN), SNR below {LOW_SNR:g}; "
+        "demosaiced bands are noise-dominated and spectral angles unreliable; lengthen the exposure"
+    )
