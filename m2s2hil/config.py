@@ -142,6 +142,16 @@ class CameraConfig(_Model):
 
 class ProcessingConfig(_Model):
     method: str = "superpixel"
+
+    @field_validator("method")
+    @classmethod
+    def _known_method(cls, v: str) -> str:
+        from m2s2hil.processing.demosaic import METHODS
+
+        if v not in METHODS:
+            raise ValueError(f"unknown demosaicing method {v!r}; known: {', '.join(METHODS)}")
+        return v
+
     dark_reduce: Literal["mean", "median"] = "mean"
     dark_frames: Annotated[int, Field(ge=1, le=256)] = 8
     dark_temperature_tolerance_c: Annotated[float, Field(gt=0)] = 2.0
@@ -289,7 +299,13 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(source, "", f"not valid TOML: {exc}") from None
-    return parse_rig(data, source)
+    rig = parse_rig(data, source)
+    cal = rig.camera.calibration_file
+    if path is not None and cal is not None and not cal.is_absolute():
+        # A calibration file named in a rig file is found next to that file.
+        camera = rig.camera.model_copy(update={"calibration_file": Path(path).parent / cal})
+        rig = rig.model_copy(update={"camera": camera})
+    return rig
 
 
 def default_rig() -> RigConfig:

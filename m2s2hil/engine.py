@@ -1063,8 +1063,10 @@ class Engine:
             factory = self._processor_factory
             if factory is None:
                 from m2s2hil.processing.pipeline import FrameProcessor as factory
-            proc = factory(self.sweep.processing, self.rig.config.camera.model,
-                           dark=dark.master if dark is not None else None)
+            kw: dict[str, Any] = {"dark": dark.master if dark is not None else None}
+            if self.rig.calibration is not None:  # crosstalk, white reference, real layout
+                kw["calibration"] = self.rig.calibration
+            proc = factory(self.sweep.processing, self.rig.config.camera.model, **kw)
             self._processors[key] = proc
         return proc
 
@@ -1170,6 +1172,9 @@ class Engine:
         sat = getattr(pf, "saturated_mask", None)
         meta["saturated_fraction"] = float(np.mean(sat)) if sat is not None else None
         meta["processing_warnings"] = [str(w) for w in getattr(pf, "warnings", ())]
+        calibration = (getattr(pf, "info", None) or {}).get("calibration")
+        if calibration is not None:
+            meta["calibration"] = calibration
         if self.qc is not None:
             try:
                 meta["qc"] = _jsonable(self.qc(pf, ev, meta))

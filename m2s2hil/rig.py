@@ -25,6 +25,9 @@ class Rig:
     world: Any = None  # the simulated world when the rig is simulated, else None
     simulated: bool = False
     extras: dict[str, Any] = field(default_factory=dict)
+    #: The camera's calibration (``processing.calibration.CameraCalibration``) when the
+    #: rig file names one: the real mosaic layout, crosstalk matrix, white reference.
+    calibration: Any = None
     #: Called to cap/uncap the lens for dark frames. A simulated rig caps its world's
     #: lens; a real rig asks the operator (the CLI prompts, the API suspends).
     lens_cap_hook: Callable[[bool], None] | None = None

@@ -210,6 +210,11 @@ def open_rig(
     from m2s2hil.drivers.u3v import U3VCamera
 
     config = config or default_rig()
+    calibration = None
+    if config.camera.calibration_file is not None:
+        from m2s2hil.processing.calibration import load_calibration
+
+        calibration = load_calibration(config.camera.calibration_file, config.camera.model)
     ports = [d.port for d in config.devices.values()] + [config.camera.port]
     all_sim = all(p.startswith("sim://") for p in ports)
     any_sim = any(p.startswith("sim://") for p in ports)
@@ -275,6 +280,7 @@ def open_rig(
             world=world,
             simulated=all_sim,
             extras={"sims": sims, "frame_source": frame_source, "controllers": controllers},
+            calibration=calibration,
         )
         rig.lights.set(())
         return rig

@@ -36,6 +36,8 @@ def test_default_rig_is_fully_simulated():
         (lambda d: d["camera"]["model"].__setitem__("layout", [[0, 1], [2, 3]]), "camera.model",
          "no position for bands"),
         (lambda d: d["lighting"].pop("directional"), "lighting", "missing preset"),
+        (lambda d: d.setdefault("processing", {}).__setitem__("method", "magic"), "processing.method",
+         "unknown demosaicing method 'magic'"),
     ],
 )
 def test_bad_rig_names_key_and_problem(mutate, key, problem):
