@@ -25,7 +25,7 @@ from pydantic import (
     model_validator,
 )
 
-from m2s2hil.errors import ConfigError
+from m2s2hil.errors import ConfigError, validation_problem
 
 MOTION_PROTOCOLS = ("grbl", "zaber")
 RELAY_PROTOCOLS = ("modbus-rtu", "ascii-relay")
@@ -267,18 +267,25 @@ def parse_rig(data: dict, source: str) -> RigConfig:
     try:
         return RigConfig.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        ctx_err = (err.get("ctx") or {}).get("error")
+        ctx_err = (exc.errors()[0].get("ctx") or {}).get("error")
         if isinstance(ctx_err, _KeyedError):
             raise ConfigError(source, ctx_err.key, ctx_err.problem) from None
-        key = ".".join(str(p) for p in err["loc"])
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        more = len(exc.errors()) - 1
-        if more:
-            msg += f" (and {more} more problem{'s' if more > 1 else ''})"
-        raise ConfigError(source, key, msg) from None
+        raise ConfigError(source, *validation_problem(exc)) from None
+
+
+def read_toml(path: str | Path) -> dict:
+    """A TOML file's tables; a missing, unreadable or malformed file is a ConfigError."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(source, "", "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(source, "", f"cannot read: {exc}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(source, "", f"not valid TOML: {exc}") from None
 
 
 def load_rig(path: str | Path | None = None) -> RigConfig:
@@ -286,19 +293,10 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
     if path is None:
         text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
         source = DEFAULT_RIG_SOURCE
-    else:
-        p = Path(path)
-        source = str(p)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise ConfigError(source, "", "no such file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(source, "", f"cannot read: {exc}") from None
-    try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(source, "", f"not valid TOML: {exc}") from None
+    else:
+        source = str(path)
+        data = read_toml(path)
     rig = parse_rig(data, source)
     cal = rig.camera.calibration_file
     if path is not None and cal is not None and not cal.is_absolute():

@@ -7,6 +7,8 @@ Each carries enough context to say what went wrong and where.
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class M2S2Error(Exception):
     """Base of every error the application raises on purpose."""
@@ -36,3 +38,18 @@ class ConfigError(UsageError):
         self.problem = problem
         where = f"{source}: {key}" if key else source
         super().__init__(f"{where}: {problem}")
+
+
+def validation_problem(exc: Any) -> tuple[str, str]:
+    """(dotted key, message) of a pydantic ``ValidationError``'s first error, with a count
+    of the others, so a bad file or request is reported as one clear line."""
+    errors = exc.errors()
+    err = errors[0]
+    key = ".".join(str(p) for p in err["loc"])
+    msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+    more = len(errors) - 1
+    if more:
+        msg += f" (and {more} more problem{'s' if more > 1 else ''})"
+    return key, msg

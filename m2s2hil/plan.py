@@ -45,7 +45,7 @@ from pydantic import (
 
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import AxisConfig, RigConfig
-from m2s2hil.errors import CatalogError, UsageError
+from m2s2hil.errors import CatalogError, UsageError, validation_problem
 
 # Starting exposures per condition (seconds): strong diffuse has ~1.7x the light of
 # weak diffuse; the spotlight is brighter still on the lit side of the mockup.
@@ -328,15 +328,7 @@ def parse_sweep(data: Any, source: str = "<sweep>") -> Sweep:
     try:
         return Sweep.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        key = ".".join(str(p) for p in err["loc"])
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        more = len(exc.errors()) - 1
-        if more:
-            msg += f" (and {more} more problem{'s' if more > 1 else ''})"
-        raise PlanError(source, key, msg) from None
+        raise PlanError(source, *validation_problem(exc)) from None
 
 
 def load_sweep(path: str | Path) -> Sweep:

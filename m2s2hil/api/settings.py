@@ -19,13 +19,13 @@ before. Example::
 from __future__ import annotations
 
 import os
-import tomllib
 from pathlib import Path
 from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 
-from m2s2hil.errors import ConfigError
+from m2s2hil.config import read_toml
+from m2s2hil.errors import ConfigError, validation_problem
 
 TOKEN_ENV = "M2S2HIL_TOKEN"
 DEFAULT_PORT = 8750
@@ -69,14 +69,7 @@ def load_serve_settings(path: str | Path | None = None, *, env: dict[str, str] |
     if path is not None:
         p = Path(path)
         source = str(p)
-        try:
-            doc = tomllib.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise ConfigError(source, "", "no such file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(source, "", f"cannot read: {exc}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(source, "", f"not valid TOML: {exc}") from None
+        doc = read_toml(p)
         unknown = sorted(set(doc) - {"serve"})
         if unknown:
             raise ConfigError(source, unknown[0], "unknown table (the daemon reads [serve] only)")
@@ -95,7 +88,5 @@ def load_serve_settings(path: str | Path | None = None, *, env: dict[str, str] |
     try:
         return ServeSettings.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        key = "serve." + ".".join(str(p) for p in err["loc"])
-        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"].removeprefix("Value error, ")
-        raise ConfigError(source, key, msg) from None
+        key, msg = validation_problem(exc)
+        raise ConfigError(source, f"serve.{key}", msg) from None

@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import tifffile
 
+from m2s2hil.atomic import write_bytes_atomic
 from m2s2hil.processing import kernels
 from m2s2hil.processing.errors import CalibrationError
 from m2s2hil.processing.mosaic import MosaicLayout
@@ -196,28 +195,15 @@ def save_calibration(
 
         bio = io.BytesIO()
         tifffile.imwrite(bio, calib.white_mosaic.astype(np.float32), photometric="minisblack")
-        _atomic(p.parent / wname, bio.getvalue())
+        write_bytes_atomic(p.parent / wname, bio.getvalue())
         refl = calib.white_reflectance if calib.white_reflectance is not None else [1.0]
         doc["white_reference"] = {
             "file": wname,
             "reflectance": [float(v) for v in np.atleast_1d(refl)],
             "sha256": hashlib.sha256(bio.getvalue()).hexdigest(),
         }
-    _atomic(p, json.dumps(doc, indent=2).encode())
+    write_bytes_atomic(p, json.dumps(doc, indent=2).encode())
     return p
-
-
-def _atomic(path: Path, payload: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class CalibrationStep:

@@ -16,8 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
@@ -28,6 +26,7 @@ import cv2
 import numpy as np
 import tifffile
 
+from m2s2hil.atomic import write_bytes_atomic
 from m2s2hil.processing.errors import (
     DarkLibraryError,
     DarkMismatchError,
@@ -218,10 +217,10 @@ class DarkLibrary:
         )
         tif = self.root / f"{key}.tiff"
         buf = _tiff_bytes(dark.data)
-        _atomic_write(tif, buf)
+        write_bytes_atomic(tif, buf)
         meta = dark.provenance()
         meta.update(format=SIDECAR_FORMAT, file=tif.name, file_sha256=hashlib.sha256(buf).hexdigest())
-        _atomic_write(tif.with_suffix(".json"), json.dumps(meta, indent=2, sort_keys=True).encode())
+        write_bytes_atomic(tif.with_suffix(".json"), json.dumps(meta, indent=2, sort_keys=True).encode())
         return tif
 
     def entries(self) -> list[dict]:
@@ -348,16 +347,3 @@ def _tiff_bytes(data: np.ndarray) -> bytes:
     bio = io.BytesIO()
     tifffile.imwrite(bio, data, photometric="minisblack")
     return bio.getvalue()
-
-
-def _atomic_write(path: Path, payload: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
