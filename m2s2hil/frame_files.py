@@ -66,8 +66,12 @@ def dumps(obj: Any) -> str:
 
 def _tiff(arr: np.ndarray, description: dict) -> bytes:
     buf = io.BytesIO()
-    # metadata=None: the description is written verbatim (no tifffile shape JSON).
-    tifffile.imwrite(buf, arr, description=dumps(description), metadata=None, photometric="minisblack")
+    # metadata=None: tifffile adds nothing of its own to our description.
+    # The array's shape leads the JSON: tifffile reads any JSON description holding a "shape"
+    # key (ours may nest one, e.g. a dark's provenance) as its own shaped-array metadata, so
+    # a correct top-level shape keeps stored files readable by plain tifffile.imread.
+    described = {"shape": list(arr.shape), **{k: v for k, v in description.items() if k != "shape"}}
+    tifffile.imwrite(buf, arr, description=dumps(described), metadata=None, photometric="minisblack")
     return buf.getvalue()
 
 
@@ -151,7 +155,11 @@ def decode_tiff(data: bytes) -> tuple[np.ndarray, dict]:
         meta = json.loads(desc) if desc else {}
     except json.JSONDecodeError:
         meta = {}
-    return arr, meta if isinstance(meta, dict) else {}
+    if not isinstance(meta, dict):
+        return arr, {}
+    if meta.get("shape") == list(arr.shape):
+        del meta["shape"]  # written by _tiff for tifffile's sake, not part of the metadata
+    return arr, meta
 
 
 def _desc(x: Any) -> str:

@@ -415,7 +415,7 @@ class SessionStore:
             if cube is not None:
                 files["cube"] = (f"frames/{name}.cube.tiff",
                                  encode_cube(cube, {**full, "bands_nm": list(m.bands_nm),
-                                                    "axes": "band,y,x"}, m.n_bands))
+                                                    "dims": "band,y,x"}, m.n_bands))
             if preview_rgb is not None:
                 files["preview"] = (f"frames/{name}.preview.png", encode_png(preview_rgb))
             for role, arr in (extra or {}).items():

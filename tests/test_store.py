@@ -106,6 +106,7 @@ def test_frame_files_checksums_and_tiff_metadata(store):
     with tifffile.TiffFile(store.path / rec.files["raw"].path) as tf:
         arr = tf.asarray()
         desc = json.loads(tf.pages[0].description)
+    assert desc.pop("shape") == list(arr.shape)  # for tifffile's shaped-series reader
     assert arr.dtype == np.uint16 and np.array_equal(arr, raw_of(3))
     assert desc["event"]["event_id"] == ev.event_id
     assert desc["exposure_s"] == ev.exposure_s and desc["gain"] == ev.gain
@@ -393,3 +394,11 @@ def test_metadata_with_a_nested_shape_key_reads_back(tmp_path):
     arr, meta = decode_tiff(data)
     assert np.array_equal(arr, raw)
     assert meta["dark"]["shape"] == [8, 8]
+    # ... and plain tifffile, as a user who downloaded the file would call it.
+    import io
+
+    import tifffile
+
+    assert np.array_equal(tifffile.imread(io.BytesIO(data)), raw)
+    cube = np.zeros((3, 4, 5), np.float32)
+    assert tifffile.imread(io.BytesIO(encode_tiff(cube, {"dark": {"shape": [1]}}))).shape == (3, 4, 5)
