@@ -79,7 +79,8 @@ def with_sensor(rig: RigConfig, *, width: int, height: int, bit_depth: int) -> R
     return RigConfig.model_validate(data)
 
 
-def _find_hil(path: Path) -> Path:
+def find_hil_root(path: Path) -> Path:
+    """The ``HIL`` folder of a published-layout folder (``path/HIL``, or ``path`` itself)."""
     if not path.is_dir():
         raise DatasetImportError(path, "not a folder")
     if (path / "HIL").is_dir():
@@ -89,7 +90,9 @@ def _find_hil(path: Path) -> Path:
     raise DatasetImportError(path, f"no HIL folder; expected {EXPECTED}")
 
 
-def _scan(hil: Path) -> list[_Item]:
+def scan_published_layout(hil: Path) -> list[_Item]:
+    """Every image under ``hil``, its name validated against the catalog; raises
+    :class:`DatasetImportError` on the first file that does not fit (see module doc)."""
     cat = load_catalog()
     items: list[_Item] = []
     seen: dict[tuple, Path] = {}
@@ -169,7 +172,7 @@ def import_dataset(path: str | Path, root: str | Path, layout: str = "m2s2", *,
         raise UsageError(f"unknown import layout {layout!r}; known: m2s2")
     base_rig = rig or default_rig()
     root = Path(root)
-    items = _scan(_find_hil(Path(path)))
+    items = scan_published_layout(find_hil_root(Path(path)))
     groups: dict[tuple[str, str], list[_Item]] = {}
     for it in items:
         groups.setdefault((it.satellite, it.build), []).append(it)
