@@ -16,14 +16,13 @@ Use::
     engine = Engine.resume_session(rig, root, session_id)   # after a crash: skips what is stored
 
 Constructor options: ``policy`` (:class:`~m2s2hil.faults.FaultPolicy`), ``on_event``
-(a subscriber from the start), ``qc`` (``qc(processed_frame, event, meta) -> score``: the
-capture-time QC hook, run in the processing stage; its result is ``meta["qc"]``, a failure is
-``meta["qc_error"]``), ``process_depth``/``store_depth`` (queue bounds), ``store_workers`` (parallel writers),
-continuous mode:
+(a subscriber from the start), ``qc`` (the capture-time QC hook, see
+:mod:`m2s2hil.engine_frames`), ``process_depth``/``store_depth`` (queue bounds),
+``store_workers`` (parallel writers), continuous mode (:mod:`m2s2hil.engine_continuous`):
 ``speed_dps`` (override) or ``max_blur_px`` (ω limited so ω·t_exp stays under it at
 ``radius_px`` from the axis; default: the plan's ω), ``max_angle_error_deg``;
 ``retry_skipped`` (a resumed run retries earlier gaps), ``check_disk``, ``save_truth``,
-``snap_timeout_s``.
+``snap_timeout_s``, ``processor_factory``.
 
 Control: ``pause``/``abort`` are honoured at the next safe boundary (between captures; in
 continuous mode between frames, stopping the turntable); ``resume``/``clear`` continue a
@@ -33,41 +32,23 @@ Final states: ``completed`` (gaps allowed, each recorded), ``aborted``, ``failed
 
 What a run does, in the plan's order (``sweep.expand(rig.config)``):
 
-- *dark* events: lens cap on (``rig.cap_lens``), N frames, master dark
-  (``processing.dark.build_master_dark``), ``store.write_dark``; reused by every frame at
-  that (exposure, gain) and retaken under a new id when the sensor temperature drifts
-  beyond ``processing.dark_temperature_tolerance_c``.
+- *dark* events: master darks (:mod:`m2s2hil.engine_darks`: capture, reuse, retake on
+  temperature drift).
 - *frame* events, stop-and-go: lamps of the condition on (only when they change), tilt then
   turntable moved and verified against the read-back within the axis tolerance, settle and
-  lamp warm-up waited (the warm-up overlaps the move), automatic exposure when the sweep
-  asks for it (once per lighting condition, recorded as a journal event and reused on
-  resume), one snap, then the frame goes down the pipeline.
-- continuous mode: per pass (one lighting and tilt), the turntable turns at ω while the
-  camera streams; the frame nearest each azimuth mark (by timestamp and read-back) is kept
-  (:mod:`m2s2hil.continuous`); blur ω·t_exp is recorded per frame and per pass.
-- pipeline (:mod:`m2s2hil.pipeline`): processing (dark subtraction + demosaicing with
-  ``processing.pipeline.FrameProcessor``, then the QC hook) and storage run in their own
-  threads behind bounded queues; results come back to the engine thread at safe
-  boundaries.
+  lamp warm-up waited (the warm-up overlaps the move), the exposure
+  (:mod:`m2s2hil.engine_exposure`: automatic once per lighting condition when the sweep
+  asks for it), one snap, then the frame goes down the pipeline.
+- continuous mode: one pass per lighting and tilt (:mod:`m2s2hil.engine_continuous`).
+- pipeline (:mod:`m2s2hil.pipeline`): processing and storage (:mod:`m2s2hil.engine_frames`,
+  which also lists the frame metadata) run in their own threads behind bounded queues;
+  results come back to the engine thread at safe boundaries.
 
 Faults go through the :class:`~m2s2hil.faults.FaultPolicy`; every fault is recorded
 (status, event bus, journal event ``fault``) and every capture given up is recorded with
 ``store.record_skip`` and its reason. Pause and abort are honoured between captures. Every
 exit path (completion, abort, failure, Ctrl-C, even a failing teardown step) ends with lamps
 off and motion stopped (:meth:`RigOps.make_safe`), and the original error is kept.
-
-Frame metadata (``meta`` of each stored frame): ``exposure_s`` and ``gain`` as the camera
-reported them, ``temperature_c``, ``pose`` (read-back of both axes), ``lamps_on``
-(channels) and ``lamp_names``, ``timestamp`` (wall), ``clock_s`` (engine clock),
-``host_wall``, ``device_timestamp_s``, ``host_time_s``, ``block_id``, ``dark_id`` and
-``dark`` (its provenance), ``processing_method``, ``software_version``, ``rig_digest``,
-``attempt`` (1 + failed tries of this capture),
-``qc`` (the hook's result), ``saturated_fraction``, ``processing_warnings``; with auto
-exposure ``auto_exposure``; in continuous mode ``continuous`` (angle at mid-exposure, its
-error to the mark, measured speed, blur in degrees and pixels). On a simulated rig the
-simulator's label map is stored with the frame as its ``truth_labels`` file
-(``store.frame(id).files["truth_labels"]``, a checksummed PNG) and ``meta["truth"]`` holds
-the class names and the simulator's pose.
 """
 
 from __future__ import annotations
@@ -75,20 +56,19 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
-import math
 import threading
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from m2s2hil.atomic import check_free_space
-from m2s2hil.autoexposure import ExposureResult, find_exposure
-from m2s2hil.continuous import PassReport, blur_estimate, run_pass
-from m2s2hil.drivers.errors import FrameIncomplete
+from m2s2hil.engine_continuous import PassCapture, SpeedSettings
+from m2s2hil.engine_darks import Dark, SessionDarks
+from m2s2hil.engine_exposure import AutoExposure, CameraControl
+from m2s2hil.engine_frames import CapturedFrame, FrameStages, QcHook, qc_number
 from m2s2hil.engine_state import (
     Captured,
     EngineEvent,
@@ -108,14 +88,13 @@ from m2s2hil.engine_state import (
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.faults import FaultPolicy, fault_class_of
 from m2s2hil.pipeline import Pipeline, PipelineStats
-from m2s2hil.plan import CaptureEvent, Sweep, dark_event, dark_event_id, estimate, estimate_continuous
+from m2s2hil.plan import CaptureEvent, Sweep, estimate
 from m2s2hil.rig import Rig
 from m2s2hil.rig_ops import RigOps
 from m2s2hil.store import SessionStore, estimate_session_bytes, software_version
 
 log = logging.getLogger(__name__)
 
-QcHook = Callable[[Any, CaptureEvent, dict], Any]
 STATUS_FAULTS = 50  # faults listed in a status snapshot (all are in the journal and the events)
 S = RunState
 
@@ -134,43 +113,10 @@ class _AbortRequested(BaseException):
 
 
 @dataclass
-class _Captured:
-    """What the camera thread hands to the processing stage."""
-
-    data: np.ndarray
-    meta: dict
-    processor: Any
-    truth: Any = None
-
-
-@dataclass
-class _Processed:
-    raw: np.ndarray
-    cube: np.ndarray | None
-    preview: np.ndarray | None
-    meta: dict
-    truth: Any = None
-
-
-@dataclass(frozen=True)
-class _Dark:
-    """A master dark and the id it is stored under."""
-
-    dark_id: str
-    master: Any  # processing.dark.MasterDark
-
-    @property
-    def temperature_c(self) -> float:
-        return float(self.master.temperature_c)
-
-
-@dataclass
 class _RunStats:
     started_at: float = 0.0
     paused_s: float = 0.0
     paused_at: float | None = None
-    blur_deg: list[float] = field(default_factory=list)
-    passes: list[dict] = field(default_factory=list)
 
 
 class Engine:
@@ -204,7 +150,6 @@ class Engine:
         if self.sweep.model_dump_json() != store.sweep.model_dump_json():
             raise UsageError(f"the sweep differs from the one session {store.session_id} was created with")
         self.policy = policy or FaultPolicy()
-        self.qc = qc
         self.clock = rig.clock
         self.ops = RigOps(rig)
         self.bus = EventBus()
@@ -217,11 +162,20 @@ class Engine:
         self.max_angle_error_deg = max_angle_error_deg
         self.radius_px = radius_px
         self.check_disk = check_disk
-        self.save_truth = save_truth and rig.simulated
+        self._version = software_version()
+        # The helpers that hold the capture logic; each gets what it needs, nothing more.
         cam_timeout = rig.config.camera.timeout_s
-        self.snap_timeout_s = cam_timeout if snap_timeout_s is None else snap_timeout_s
-        self._processor_factory = processor_factory
-        self._pipeline = Pipeline(self._process, self._store, process_depth=process_depth,
+        self._camera = CameraControl(rig, cam_timeout if snap_timeout_s is None else snap_timeout_s)
+        self._exposure = AutoExposure(self.sweep, store, self._camera, rig.config.camera.model)
+        self._darks = SessionDarks(rig, store, self.sweep, self.ops, self._camera, self._dark_stored)
+        self._frames = FrameStages(rig, store, self.sweep, self.ops, qc=qc,
+                                   save_truth=save_truth and rig.simulated,
+                                   processor_factory=processor_factory, version=self._version)
+        self._passes = PassCapture(rig, store, self.sweep, self.ops, camera=self._camera,
+                                   exposure=self._exposure, darks=self._darks, frames=self._frames,
+                                   set_condition=self._set_condition, submit=self._submit,
+                                   should_stop=lambda: self.state is not S.RUNNING)
+        self._pipeline = Pipeline(self._frames.process, self._frames.write, process_depth=process_depth,
                                   store_depth=store_depth, store_workers=store_workers,
                                   name=f"engine-{store.session_id}")
 
@@ -248,12 +202,6 @@ class Engine:
         self._efficiency: float | None = None
         self._thread: threading.Thread | None = None
         self._stats = _RunStats()
-        self._darks: dict[str, _Dark] = {}
-        self._dark_alias: dict[str, str] = {}  # planned dark id -> id of a retaken dark
-        self._processors: dict[str | None, Any] = {}
-        self._auto: dict[str, ExposureResult] = {}
-        self._cam_setting: tuple[float, float] | None = None
-        self._version = software_version()
         self._eta_basis: float | None = None
         self._eta_cache: tuple[int, float | None] = (-1, None)
         self._stored_this_run: set[str] = set()
@@ -270,6 +218,31 @@ class Engine:
     def state(self) -> RunState:
         with self._lock:
             return self._state
+
+    # Options held by the helpers that use them (one copy, still settable here).
+    @property
+    def qc(self) -> QcHook | None:
+        return self._frames.qc
+
+    @qc.setter
+    def qc(self, hook: QcHook | None) -> None:
+        self._frames.qc = hook
+
+    @property
+    def save_truth(self) -> bool:
+        return self._frames.save_truth
+
+    @save_truth.setter
+    def save_truth(self, on: bool) -> None:
+        self._frames.save_truth = on
+
+    @property
+    def snap_timeout_s(self) -> float:
+        return self._camera.snap_timeout_s
+
+    @snap_timeout_s.setter
+    def snap_timeout_s(self, seconds: float) -> None:
+        self._camera.snap_timeout_s = seconds
 
     def subscribe(self, callback: Callable[[EngineEvent], None]) -> Callable[[], None]:
         """Call ``callback(event)`` for every engine event (in the engine thread); returns unsubscribe."""
@@ -469,7 +442,7 @@ class Engine:
             total = estimate_session_bytes(self.sweep, self.rig.config)
             need = int(total * len(pending) / max(1, len(self.events)))
             check_free_space(self.store.path, need)
-        self._restore_auto_exposure()
+        self._exposure.restore()
         self.rig.mount(self.sweep.satellite, self.sweep.build)
         with self._lock:
             self._eta_basis = None
@@ -573,7 +546,7 @@ class Engine:
             return None
         if self._stored_this_run >= set(self._by_id):
             if self.sweep.mode == "continuous":
-                lower = self._continuous_estimate().lower_bound_s
+                lower = self._speed_settings().estimate(self.sweep, self.rig.config).lower_bound_s
             else:
                 lower = estimate(self.events, self.rig.config).lower_bound_s
         else:
@@ -600,12 +573,12 @@ class Engine:
                 "blocked_count": st.blocked_count, "process_s": st.process_s, "store_s": st.store_s,
             },
         }
-        if self._stats.blur_deg:
-            out["blur_deg"] = {"mean": float(np.mean(self._stats.blur_deg)),
-                               "max": float(np.max(self._stats.blur_deg))}
-            out["passes"] = self._stats.passes
-        if self._auto:
-            out["auto_exposure"] = {c: r.exposure_s for c, r in self._auto.items()}
+        if self._passes.blur_deg:
+            out["blur_deg"] = {"mean": float(np.mean(self._passes.blur_deg)),
+                               "max": float(np.max(self._passes.blur_deg))}
+            out["passes"] = self._passes.passes
+        if self._exposure.results:
+            out["auto_exposure"] = {c: r.exposure_s for c, r in self._exposure.results.items()}
         qc_summary = getattr(self.qc, "summary", None)
         if callable(qc_summary):  # the QC hook keeps the distribution of its scores
             out["qc"] = qc_summary()
@@ -678,7 +651,7 @@ class Engine:
             self._note_fault(exc, "teardown", None)
         if not report.safe:
             raise RuntimeError("cannot park the rig safely: " + "; ".join(str(e) for e in report.errors[-3:]))
-        self._cam_setting = None
+        self._camera.forget()
         with contextlib.suppress(Exception):
             self.store.set_state("paused")
         with self._lock:
@@ -780,7 +753,7 @@ class Engine:
         known = bool(roles)
         self.ops.invalidate(lamps=not known or "lights" in roles,
                             pose=not known or bool(roles & {"turntable", "tilt"}))
-        self._cam_setting = None
+        self._camera.forget()
 
     def _skip(self, ev: CaptureEvent, err: BaseException, fc: str) -> None:
         reason = f"{type(err).__name__}: {err}"
@@ -808,7 +781,7 @@ class Engine:
                     elevation=ev.elevation, azimuth_deg=ev.nominal_azimuth_deg,
                     exposure_s=rec.meta.get("exposure_s") if rec else None,
                     path=rec.files["raw"].path if rec and "raw" in rec.files else None,
-                    qc_score=_qc_number(rec.meta.get("qc")) if rec else None,
+                    qc_score=qc_number(rec.meta.get("qc")) if rec else None,
                 )
                 self._publish_progress()
                 continue
@@ -844,11 +817,22 @@ class Engine:
     def _capture(self, todo: list[CaptureEvent]) -> None:
         first = todo[0]
         if first.kind == "dark":
-            self._capture_dark(first)
+            self._darks.capture(first)
         elif self.sweep.mode == "continuous":
-            self._capture_pass(todo)
+            self._passes.capture(todo, self._speed_settings(), self._attempt)
         else:
             self._capture_frame(first)
+
+    def _dark_stored(self, ev: CaptureEvent) -> None:
+        if ev.event_id in self._by_id:  # a planned dark (not one taken for auto exposure or drift)
+            with self._lock:
+                self._done.add(ev.event_id)
+                self._stored_this_run.add(ev.event_id)
+                self._last_event = ev
+            self._publish_progress()
+
+    def _speed_settings(self) -> SpeedSettings:
+        return SpeedSettings(self.speed_dps, self.max_blur_px, self.max_angle_error_deg, self.radius_px)
 
     def _set_condition(self, ev: CaptureEvent) -> None:
         assert ev.lighting is not None
@@ -856,343 +840,31 @@ class Engine:
             self._cur.update(lighting=ev.lighting, elevation=ev.elevation)
         self.ops.set_lamps(frozenset(self.rig.config.lamp_channels(ev.lighting)))
 
-    def _configure(self, exposure_s: float, gain: float) -> None:
-        if self._cam_setting != (exposure_s, gain):
-            self.rig.camera.configure(exposure_s=exposure_s, gain=gain)
-            self._cam_setting = (exposure_s, gain)
-
-    def _snap(self, exposure_s: float) -> Any:
-        return self.rig.camera.snap(timeout=exposure_s + self.snap_timeout_s)
-
     def _capture_frame(self, ev: CaptureEvent) -> None:
         assert ev.azimuth_deg is not None and ev.tilt_deg is not None
         self._set_condition(ev)
         moved = self.ops.move_pose(ev.azimuth_deg, ev.tilt_deg)
         self.ops.wait_ready(self.clock.monotonic() + self.ops.settle_s(moved, ev.settle_s))
-        exposure, auto = self._exposure(ev)
-        dark = self._dark_for(exposure, ev.gain)
-        self._configure(exposure, ev.gain)
+        exposure, auto = self._exposure.exposure(ev)
+        dark = self._darks.for_setting(exposure, ev.gain)
+        self._camera.configure(exposure, ev.gain)
         t_clock, t_wall = self.clock.monotonic(), self.clock.wall()
-        frame = self._snap(exposure)
-        truth = self._truth()
-        dark = self._check_dark_temperature(dark, exposure, ev.gain, frame.temperature_c)
-        meta = self._frame_meta(ev, frame, exposure, dark, t_clock, t_wall)
+        frame = self._camera.snap(exposure)
+        truth = self._frames.truth()
+        dark = self._darks.check_temperature(dark, exposure, ev.gain, frame.temperature_c)
+        meta = self._frames.meta(ev, frame, exposure, dark, t_clock, t_wall, self._attempt)
         if auto is not None:
             meta["auto_exposure"] = auto.to_dict()
         self._submit(ev, frame.data, meta, dark, truth)
 
-    def _submit(self, ev: CaptureEvent, data: np.ndarray, meta: dict, dark: Any, truth: Any) -> None:
-        processor = self._processor(dark)
+    def _submit(self, ev: CaptureEvent, data: np.ndarray, meta: dict, dark: Dark | None, truth: Any) -> None:
+        processor = self._frames.processor(dark)
         with self._lock:
             self._inflight[ev.event_id] = ev
-        self._pipeline.submit(ev, _Captured(data, meta, processor, truth))
+        self._pipeline.submit(ev, CapturedFrame(data, meta, processor, truth))
         self._publish(Captured, event_id=ev.event_id, index=ev.index, lighting=ev.lighting,
                       elevation=ev.elevation, azimuth_deg=meta["pose"]["turntable_deg"],
                       tilt_deg=meta["pose"]["tilt_deg"], exposure_s=meta["exposure_s"])
-
-    def _frame_meta(self, ev: CaptureEvent, frame: Any, exposure: float, dark: Any, t_clock: float,
-                    t_wall: float) -> dict:
-        pose = self.ops.pose()
-        return {
-            "exposure_s": float(frame.exposure_s or exposure),
-            "planned_exposure_s": ev.exposure_s,
-            "gain": float(frame.gain),
-            "temperature_c": float(frame.temperature_c),
-            "pose": {"turntable_deg": pose["turntable"], "tilt_deg": pose["tilt"]},
-            "lamps_on": sorted(self.ops.lit),
-            "lamp_names": self.ops.lamp_names(),
-            "lamp_on_s": self.ops.lamp_ages(),
-            "timestamp": t_wall,  # the engine clock's wall time (synthetic on a virtual clock)
-            "host_wall": time.time(),  # the computer's own wall time, for provenance
-            "clock_s": t_clock,
-            "host_time_s": float(frame.host_time_s),
-            "device_timestamp_s": float(frame.timestamp_s),
-            "block_id": int(frame.block_id),
-            "pixel_format": frame.pixel_format,
-            "dark_id": dark.dark_id if dark is not None else None,
-            "dark": dark.master.provenance() if dark is not None else None,
-            "processing_method": self.sweep.processing,
-            "software_version": self._version,
-            "rig_digest": self.rig.config.digest,
-            "mode": self.sweep.mode,
-            "attempt": self._attempt,
-            "simulated": bool(self.rig.simulated),
-        }
-
-    def _truth(self) -> Any:
-        if not self.save_truth:
-            return None
-        src = self.rig.extras.get("frame_source")
-        if src is None:
-            return None
-        t = src.truth()
-        labels = getattr(t, "labels", None)
-        if labels is None:
-            return None
-        return {"labels": np.array(labels, copy=True), "class_names": list(getattr(t, "class_names", [])),
-                "azimuth_deg": float(getattr(t, "azimuth_deg", math.nan)),
-                "tilt_deg": float(getattr(t, "tilt_deg", math.nan))}
-
-    # ------------------------------------------------------------------ exposure and darks
-    def _restore_auto_exposure(self) -> None:
-        if not self.sweep.auto_exposure:
-            return
-        for rec in self.store.events():
-            if rec.get("kind") == "auto_exposure":
-                p = rec.get("payload") or {}
-                try:
-                    self._auto[p["lighting"]] = ExposureResult(
-                        float(p["exposure_s"]), float(p["level_dn"]), int(p["frames"]),
-                        tuple(tuple(h) for h in p.get("history", [])), bool(p["converged"]), p.get("limited"),
-                    )
-                except (KeyError, TypeError, ValueError):
-                    log.warning("ignoring a malformed auto_exposure record: %r", p)
-
-    def _exposure(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
-        if not self.sweep.auto_exposure:
-            return ev.exposure_s, None
-        assert ev.lighting is not None
-        res = self._auto.get(ev.lighting)
-        if res is None:
-            res = self._meter(ev)
-            self._auto[ev.lighting] = res
-            self.store.record_event("auto_exposure", {"lighting": ev.lighting, "event_id": ev.event_id,
-                                                      **res.to_dict()})
-        return res.exposure_s, res
-
-    def _meter(self, ev: CaptureEvent) -> ExposureResult:
-        ae = self.sweep.exposure
-        model = self.rig.config.camera.model
-
-        def measure(t: float) -> np.ndarray:
-            t = round(t, 6)
-            self._configure(t, ev.gain)
-            return self._snap(t).data
-
-        res = find_exposure(
-            measure, full_scale=model.full_scale, start_s=ev.exposure_s, min_s=ae.min_s, max_s=ae.max_s,
-            # aim a little under the limit and accept the first frame within ~8 % below it
-            limit=ae.target_fraction, aim=ae.target_fraction * 0.967, accept_low=ae.target_fraction * 0.922,
-            percentile=ae.percentile, max_frames=ae.max_iterations,
-        )
-        return ExposureResult(round(res.exposure_s, 6), res.level, res.frames, res.history, res.converged,
-                              res.limited)
-
-    def _dark_for(self, exposure_s: float, gain: float) -> _Dark | None:
-        if self.sweep.dark.frames <= 0:
-            return None
-        did = dark_event_id(exposure_s, gain)
-        did = self._dark_alias.get(did, did)
-        if did in self._darks:
-            return self._darks[did]
-        rec = self.store.dark_for(exposure_s, gain)
-        if rec is not None:
-            return self._load_dark(rec)
-        return self._capture_dark(dark_event(exposure_s, gain, self.sweep.dark.frames))
-
-    def _load_dark(self, rec: Any) -> _Dark:
-        from m2s2hil.processing.dark import MasterDark
-
-        m = rec.meta
-        # The store keeps masters as float32 TIFFs; ours are whole DN (rounded at build time).
-        data = np.clip(np.rint(self.store.load_dark(rec.dark_id)), 0, 65535).astype(np.uint16)
-        master = MasterDark(
-            data=data, created=str(m.get("created", "")),
-            camera_serial=str(m.get("camera_serial", "unknown")), n_frames=rec.n_frames,
-            exposure_s=rec.exposure_s, gain=rec.gain, temperature_c=float(m.get("temperature_c", math.nan)),
-            reduce=rec.reduce,
-        )
-        dark = self._darks[rec.dark_id] = _Dark(rec.dark_id, master)
-        self._dark_alias[dark_event_id(rec.exposure_s, rec.gain)] = rec.dark_id
-        return dark
-
-    def _capture_dark(self, ev: CaptureEvent) -> _Dark:
-        from m2s2hil.processing.dark import build_master_dark
-
-        if ev.event_id in self.store.completed_event_ids():
-            rec = next(d for d in self.store.darks() if d.dark_id == ev.event_id)
-            return self._load_dark(rec)
-        cam = self.rig.camera
-        self.rig.cap_lens(True)
-        self.ops.lens_capped = True
-        try:
-            self._configure(ev.exposure_s, ev.gain)
-            frames = [self._snap(ev.exposure_s) for _ in range(ev.n_frames)]
-        finally:
-            self.rig.cap_lens(False)
-            self.ops.lens_capped = False
-        master = build_master_dark(
-            [f.data for f in frames], reduce=self.sweep.dark.reduce, exposure_s=ev.exposure_s, gain=ev.gain,
-            temperature_c=[f.temperature_c for f in frames], camera=getattr(cam, "serial", None) or cam.name,
-            tolerance_c=self.rig.config.processing.dark_temperature_tolerance_c,
-        )
-        del frames
-        meta = {**master.provenance(), "clock_s": self.clock.monotonic()}
-        self.store.write_dark(ev, master.data, meta=meta)
-        dark = self._darks[ev.event_id] = _Dark(ev.event_id, master)
-        base = dark_event_id(ev.exposure_s, ev.gain)
-        if ev.event_id != base:
-            self._dark_alias[base] = ev.event_id
-        if ev.event_id in self._by_id:  # a planned dark (not one taken for auto exposure or drift)
-            with self._lock:
-                self._done.add(ev.event_id)
-                self._stored_this_run.add(ev.event_id)
-                self._last_event = ev
-            self._publish_progress()
-        return dark
-
-    def _check_dark_temperature(self, dark: _Dark | None, exposure_s: float, gain: float,
-                                temperature_c: float) -> _Dark | None:
-        if dark is None:
-            return None
-        tol = self.rig.config.processing.dark_temperature_tolerance_c
-        if abs(dark.temperature_c - temperature_c) <= tol or math.isnan(dark.temperature_c):
-            return dark
-        base = dark_event_id(exposure_s, gain)
-        n = sum(1 for d in self._darks if d.startswith(base))
-        ev = dark_event(exposure_s, gain, self.sweep.dark.frames).model_copy(
-            update={"event_id": f"{base}/t{n}"})
-        log.info("sensor at %.1f °C, dark %s at %.1f °C: retaking", temperature_c, dark.dark_id,
-                 dark.temperature_c)
-        return self._capture_dark(ev)
-
-    def _processor(self, dark: _Dark | None) -> Any:
-        key = dark.dark_id if dark is not None else None
-        proc = self._processors.get(key)
-        if proc is None:
-            factory = self._processor_factory
-            if factory is None:
-                from m2s2hil.processing.pipeline import FrameProcessor as factory
-            kw: dict[str, Any] = {"dark": dark.master if dark is not None else None}
-            if self.rig.calibration is not None:  # crosstalk, white reference, real layout
-                kw["calibration"] = self.rig.calibration
-            proc = factory(self.sweep.processing, self.rig.config.camera.model, **kw)
-            self._processors[key] = proc
-        return proc
-
-    # ------------------------------------------------------------------ continuous mode
-    def _capture_pass(self, todo: list[CaptureEvent]) -> None:
-        first = todo[0]
-        assert first.tilt_deg is not None and first.lighting is not None
-        self._set_condition(first)
-        moved = ["tilt"] if self.ops.move("tilt", first.tilt_deg) else []
-        exposure, auto = self._exposure_for_pass(first)
-        dark = self._dark_for(exposure, first.gain)
-        speed = self._omega(first.lighting, exposure)
-        self._configure(exposure, first.gain)
-        blur = blur_estimate(speed, exposure, self.radius_px)
-        marks: dict[float, list[CaptureEvent]] = {}
-        for ev in todo:
-            assert ev.azimuth_deg is not None
-            marks.setdefault(ev.azimuth_deg, []).append(ev)
-
-        def on_match(match: Any, frame_info: list[dict]) -> None:
-            evs = sorted(match.key, key=lambda e: e.frame)
-            for ev, frame, extra in zip(evs, match.frames, match.extras, strict=False):
-                meta = self._frame_meta(ev, frame, exposure, dark, extra["clock_s"], extra["wall"])
-                meta["pose"] = {"turntable_deg": extra["angle_deg"], "tilt_deg": self.ops.pose()["tilt"],
-                                "turntable_source": "interpolated read-back at mid-exposure"}
-                meta["continuous"] = {
-                    "mark_deg": match.mark_deg, "angle_deg": extra["angle_deg"],
-                    "error_deg": extra["angle_deg"] - match.mark_deg, "speed_dps": extra["speed_dps"],
-                    "commanded_speed_dps": speed, **blur.to_dict(),
-                }
-                if auto is not None:
-                    meta["auto_exposure"] = auto.to_dict()
-                self._stats.blur_deg.append(blur.deg)
-                self._submit(ev, frame.data, meta, dark, extra.get("truth"))
-
-        def should_stop() -> bool:
-            with self._lock:
-                return self._state is not S.RUNNING
-
-        self.ops.wait_ready(self.clock.monotonic() + self.ops.settle_s(moved, first.settle_s))
-        report: PassReport = run_pass(
-            self.rig, self.ops, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
-            exposure_s=exposure, k=self.sweep.frames_per_pose, window_deg=self._match_window(speed, exposure),
-            on_match=on_match, should_stop=should_stop, on_frame=self._continuous_extra,
-            frame_timeout_s=exposure + self.snap_timeout_s,
-        )
-        info = {"pass_index": first.pass_index, "lighting": first.lighting, "elevation": first.elevation,
-                "exposure_s": exposure, **report.to_dict(), **blur.to_dict()}
-        self._stats.passes.append(info)
-        self.store.record_event("continuous_pass", info)
-        if report.stopped_early:
-            return  # pause/abort: the boundary handles it; what is left stays pending
-        missing = [ev for _, evs in report.missing for ev in evs]
-        if missing:
-            raise FrameIncomplete(
-                f"no frame matched to {len(report.missing)} azimuth mark(s) "
-                f"({', '.join(f'{a:g}' for a, _ in report.missing[:5])} deg); "
-                f"{report.dropped} frame(s) dropped in the pass",
-                device=getattr(self.rig.camera, "name", "camera"), command="continuous pass",
-            )
-
-    def _continuous_estimate(self) -> Any:
-        """The plan's continuous model at this engine's blur limit (or speed override)."""
-        blur = self.max_blur_px
-        if self.speed_dps is not None:
-            # ω = speed for the shortest exposure (exactly, when all conditions share it)
-            t = min(self.sweep.exposure_for(c) for c in self.sweep.lighting)
-            blur = self.radius_px * math.radians(self.speed_dps * t)
-        return estimate_continuous(self.sweep, self.rig.config, radius_px=self.radius_px, max_blur_px=blur)
-
-    def _omega(self, lighting: str, exposure_s: float) -> float:
-        if self.speed_dps is not None:
-            return self.speed_dps
-        omega = self._continuous_estimate().omega_dps[lighting]
-        if self.max_blur_px is not None:  # auto exposure may have changed t_exp
-            omega = min(omega, math.degrees(self.max_blur_px / self.radius_px) / exposure_s)
-        return omega
-
-    def _match_window(self, speed: float, exposure_s: float) -> float:
-        """Largest accepted |angle - mark|: 1.5 frame spacings (one dropped frame at a mark is
-        tolerated, a longer gap makes the mark missing), unless set explicitly."""
-        if self.max_angle_error_deg is not None:
-            return self.max_angle_error_deg
-        period = max(1.0 / self.rig.config.camera.model.max_fps, exposure_s)
-        return min(self.sweep.azimuth_step_deg / 2, max(0.1, 1.5 * speed * period))
-
-    def _continuous_extra(self, frame: Any) -> dict:
-        return {"clock_s": self.clock.monotonic(), "wall": self.clock.wall(), "truth": self._truth()}
-
-    def _exposure_for_pass(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
-        if not self.sweep.auto_exposure or ev.lighting in self._auto:
-            return self._exposure(ev)
-        assert ev.azimuth_deg is not None
-        self.ops.move("turntable", ev.azimuth_deg)  # meter at the pass's first mark
-        self.ops.wait_ready(self.clock.monotonic())
-        return self._exposure(ev)
-
-    # ------------------------------------------------------------------ pipeline stages
-    def _process(self, ev: CaptureEvent, cap: _Captured) -> _Processed:
-        meta = dict(cap.meta)
-        pf = cap.processor.process(cap.data)
-        cube = np.array(pf.cube, copy=True)  # the processor may reuse its output buffers
-        sat = getattr(pf, "saturated_mask", None)
-        meta["saturated_fraction"] = float(np.mean(sat)) if sat is not None else None
-        meta["processing_warnings"] = [str(w) for w in getattr(pf, "warnings", ())]
-        calibration = (getattr(pf, "info", None) or {}).get("calibration")
-        if calibration is not None:
-            meta["calibration"] = calibration
-        if self.qc is not None:
-            try:
-                meta["qc"] = _jsonable(self.qc(pf, ev, meta))
-            except Exception as exc:  # a QC bug must not lose the frame; it is recorded
-                log.exception("QC hook failed on %s", ev.event_id)
-                meta["qc"] = None
-                meta["qc_error"] = f"{type(exc).__name__}: {exc}"
-        preview = _preview(cube, self.rig.config.camera.model.bands_nm)
-        return _Processed(cap.data, cube, preview, meta, cap.truth)
-
-    def _store(self, ev: CaptureEvent, p: _Processed) -> Any:
-        if p.truth is None:
-            return self.store.write_frame(ev, p.raw, p.cube, p.preview, p.meta)
-        # Simulation: the label map is stored as the frame's "truth_labels" file (checksummed
-        # and committed with it); the rest of the truth that is small goes into the metadata.
-        meta = {**p.meta, "truth": {k: v for k, v in p.truth.items() if k != "labels"}}
-        return self.store.write_frame(ev, p.raw, p.cube, p.preview, meta,
-                                      extra={"truth_labels": p.truth["labels"]})
 
 
 def interrupted_sessions(root: str | Path) -> list[str]:
@@ -1202,37 +874,6 @@ def interrupted_sessions(root: str | Path) -> list[str]:
 
     found = [s for s in list_sessions(root) if s.state in ("running", "paused")]
     return [s.session_id for s in sorted(found, key=lambda s: s.created or 0.0)]
-
-
-def _qc_number(v: Any) -> float | None:
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
-        return float(v)
-    if isinstance(v, dict):
-        s = v.get("score")
-        return float(s) if isinstance(s, (int, float)) else None
-    return None
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    return v
-
-
-def _preview(cube: np.ndarray | None, bands_nm: tuple[float, ...]) -> np.ndarray | None:
-    """An 8-bit RGB preview from the bands nearest 650/550/470 nm, stretched to the 99.5th percentile."""
-    if cube is None or cube.ndim != 3:
-        return None
-    nm = np.asarray(bands_nm)
-    idx = [int(np.argmin(np.abs(nm - t))) for t in (650.0, 550.0, 470.0)]
-    bands_first = cube.shape[0] == len(nm)
-    rgb = np.stack([cube[i] if bands_first else cube[..., i] for i in idx], axis=-1).astype(np.float32)
-    hi = float(np.percentile(rgb[::4, ::4], 99.5)) or 1.0
-    return np.clip(rgb * (255.0 / hi), 0, 255).astype(np.uint8)
 
 
 __all__ = ["Engine", "EngineStatus", "FaultPolicy", "RunState", "SessionFailed", "interrupted_sessions"]

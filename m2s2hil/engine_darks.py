@@ -1,0 +1,139 @@
+"""The master darks of a capture session, as the engine uses them.
+
+- *dark* events: lens cap on (``rig.cap_lens``), N frames, master dark
+  (``processing.dark.build_master_dark``), ``store.write_dark``; the cap comes off whatever
+  happens to the snaps.
+- every frame at an (exposure, gain) reuses that setting's dark: one taken in this run, one
+  the store already holds (a resumed session loads it), or one captured on demand (e.g. for
+  an exposure that auto exposure chose).
+- temperature: when the sensor has drifted beyond
+  ``processing.dark_temperature_tolerance_c`` from a dark's temperature, the dark is
+  retaken under a new id (``<planned id>/t<n>``) and the planned id is aliased to it, so
+  later frames at that setting use the fresh one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from m2s2hil.engine_exposure import CameraControl
+from m2s2hil.plan import CaptureEvent, Sweep, dark_event, dark_event_id
+from m2s2hil.rig import Rig
+from m2s2hil.rig_ops import RigOps
+from m2s2hil.store import DarkRecord, SessionStore
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Dark:
+    """A master dark and the id it is stored under."""
+
+    dark_id: str
+    master: Any  # processing.dark.MasterDark
+
+    @property
+    def temperature_c(self) -> float:
+        return float(self.master.temperature_c)
+
+
+class SessionDarks:
+    """Darks by id, with the alias from a planned dark id to the id of its retake.
+
+    ``on_captured(event)`` is called after each dark this object captures and stores (the
+    engine counts a planned one as done).
+    """
+
+    def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, camera: CameraControl,
+                 on_captured: Callable[[CaptureEvent], None]) -> None:
+        self.rig = rig
+        self.store = store
+        self.sweep = sweep
+        self.ops = ops
+        self.camera = camera
+        self.on_captured = on_captured
+        self._darks: dict[str, Dark] = {}
+        self._alias: dict[str, str] = {}  # planned dark id -> id of a retaken dark
+
+    def for_setting(self, exposure_s: float, gain: float) -> Dark | None:
+        """The dark for frames at this setting (None when the sweep takes no darks)."""
+        if self.sweep.dark.frames <= 0:
+            return None
+        did = dark_event_id(exposure_s, gain)
+        did = self._alias.get(did, did)
+        if did in self._darks:
+            return self._darks[did]
+        rec = self.store.dark_for(exposure_s, gain)
+        if rec is not None:
+            return self.load(rec)
+        return self.capture(dark_event(exposure_s, gain, self.sweep.dark.frames))
+
+    def load(self, rec: DarkRecord) -> Dark:
+        """A dark the store holds."""
+        from m2s2hil.processing.dark import MasterDark
+
+        m = rec.meta
+        # The store keeps masters as float32 TIFFs; ours are whole DN (rounded at build time).
+        data = np.clip(np.rint(self.store.load_dark(rec.dark_id)), 0, 65535).astype(np.uint16)
+        master = MasterDark(
+            data=data, created=str(m.get("created", "")),
+            camera_serial=str(m.get("camera_serial", "unknown")), n_frames=rec.n_frames,
+            exposure_s=rec.exposure_s, gain=rec.gain, temperature_c=float(m.get("temperature_c", math.nan)),
+            reduce=rec.reduce,
+        )
+        dark = self._darks[rec.dark_id] = Dark(rec.dark_id, master)
+        self._alias[dark_event_id(rec.exposure_s, rec.gain)] = rec.dark_id
+        return dark
+
+    def capture(self, ev: CaptureEvent) -> Dark:
+        """Take, build and store the dark of ``ev`` (or load it if the session has it already)."""
+        from m2s2hil.processing.dark import build_master_dark
+
+        if ev.event_id in self.store.completed_event_ids():
+            rec = next(d for d in self.store.darks() if d.dark_id == ev.event_id)
+            return self.load(rec)
+        cam = self.rig.camera
+        self.rig.cap_lens(True)
+        self.ops.lens_capped = True
+        try:
+            self.camera.configure(ev.exposure_s, ev.gain)
+            frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
+        finally:
+            self.rig.cap_lens(False)
+            self.ops.lens_capped = False
+        master = build_master_dark(
+            [f.data for f in frames], reduce=self.sweep.dark.reduce, exposure_s=ev.exposure_s, gain=ev.gain,
+            temperature_c=[f.temperature_c for f in frames], camera=getattr(cam, "serial", None) or cam.name,
+            tolerance_c=self.rig.config.processing.dark_temperature_tolerance_c,
+        )
+        del frames
+        meta = {**master.provenance(), "clock_s": self.rig.clock.monotonic()}
+        self.store.write_dark(ev, master.data, meta=meta)
+        dark = self._darks[ev.event_id] = Dark(ev.event_id, master)
+        base = dark_event_id(ev.exposure_s, ev.gain)
+        if ev.event_id != base:
+            self._alias[base] = ev.event_id
+        self.on_captured(ev)
+        return dark
+
+    def check_temperature(self, dark: Dark | None, exposure_s: float, gain: float,
+                          temperature_c: float) -> Dark | None:
+        """``dark``, or a retake of it when the sensor is now at a different temperature."""
+        if dark is None:
+            return None
+        tol = self.rig.config.processing.dark_temperature_tolerance_c
+        if abs(dark.temperature_c - temperature_c) <= tol or math.isnan(dark.temperature_c):
+            return dark
+        base = dark_event_id(exposure_s, gain)
+        n = sum(1 for d in self._darks if d.startswith(base))
+        ev = dark_event(exposure_s, gain, self.sweep.dark.frames).model_copy(
+            update={"event_id": f"{base}/t{n}"})
+        log.info("sensor at %.1f °C, dark %s at %.1f °C: retaking", temperature_c, dark.dark_id,
+                 dark.temperature_c)
+        return self.capture(ev)

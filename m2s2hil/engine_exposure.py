@@ -1,0 +1,107 @@
+"""Exposure for the capture engine: the camera's (exposure, gain) setting and automatic exposure.
+
+:class:`CameraControl` configures the camera only when the setting changes and snaps with a
+timeout of the exposure plus ``snap_timeout_s``; after a fault or a pause the engine calls
+:meth:`CameraControl.forget` so the next capture re-commands the setting.
+
+:class:`AutoExposure` meters once per lighting condition when the sweep asks for it
+(:func:`m2s2hil.autoexposure.find_exposure`), records the result as a journal event
+``auto_exposure`` and reuses it for every later frame of that condition; a resumed session
+restores the results from the journal instead of metering again.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from m2s2hil.autoexposure import ExposureResult, find_exposure
+from m2s2hil.config import CameraModel
+from m2s2hil.plan import CaptureEvent, Sweep
+from m2s2hil.rig import Rig
+from m2s2hil.store import SessionStore
+
+log = logging.getLogger(__name__)
+
+
+class CameraControl:
+    """The camera's current (exposure, gain) as last commanded, and snaps with a timeout."""
+
+    def __init__(self, rig: Rig, snap_timeout_s: float) -> None:
+        self.rig = rig  # the camera is looked up on the rig at each call
+        self.snap_timeout_s = snap_timeout_s
+        self._setting: tuple[float, float] | None = None
+
+    def configure(self, exposure_s: float, gain: float) -> None:
+        if self._setting != (exposure_s, gain):
+            self.rig.camera.configure(exposure_s=exposure_s, gain=gain)
+            self._setting = (exposure_s, gain)
+
+    def forget(self) -> None:
+        """The camera's setting is no longer trusted (fault, pause): command it again next time."""
+        self._setting = None
+
+    def snap(self, exposure_s: float) -> Any:
+        return self.rig.camera.snap(timeout=exposure_s + self.snap_timeout_s)
+
+
+class AutoExposure:
+    """The exposure of each capture: the planned one, or the metered one per lighting condition."""
+
+    def __init__(self, sweep: Sweep, store: SessionStore, camera: CameraControl, model: CameraModel) -> None:
+        self.sweep = sweep
+        self.store = store
+        self.camera = camera
+        self.model = model
+        self.results: dict[str, ExposureResult] = {}  # lighting -> metered exposure
+
+    def restore(self) -> None:
+        """Reload the results journaled by an earlier run of this session."""
+        if not self.sweep.auto_exposure:
+            return
+        for rec in self.store.events():
+            if rec.get("kind") == "auto_exposure":
+                p = rec.get("payload") or {}
+                try:
+                    self.results[p["lighting"]] = ExposureResult(
+                        float(p["exposure_s"]), float(p["level_dn"]), int(p["frames"]),
+                        tuple(tuple(h) for h in p.get("history", [])), bool(p["converged"]), p.get("limited"),
+                    )
+                except (KeyError, TypeError, ValueError):
+                    log.warning("ignoring a malformed auto_exposure record: %r", p)
+
+    def needs_metering(self, ev: CaptureEvent) -> bool:
+        return bool(self.sweep.auto_exposure) and ev.lighting not in self.results
+
+    def exposure(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
+        """``(exposure_s, result)``; ``result`` is None without auto exposure. Meters if needed."""
+        if not self.sweep.auto_exposure:
+            return ev.exposure_s, None
+        assert ev.lighting is not None
+        res = self.results.get(ev.lighting)
+        if res is None:
+            res = self._meter(ev)
+            self.results[ev.lighting] = res
+            self.store.record_event("auto_exposure", {"lighting": ev.lighting, "event_id": ev.event_id,
+                                                      **res.to_dict()})
+        return res.exposure_s, res
+
+    def _meter(self, ev: CaptureEvent) -> ExposureResult:
+        ae = self.sweep.exposure
+        model = self.model
+
+        def measure(t: float) -> np.ndarray:
+            t = round(t, 6)
+            self.camera.configure(t, ev.gain)
+            return self.camera.snap(t).data
+
+        res = find_exposure(
+            measure, full_scale=model.full_scale, start_s=ev.exposure_s, min_s=ae.min_s, max_s=ae.max_s,
+            # aim a little under the limit and accept the first frame within ~8 % below it
+            limit=ae.target_fraction, aim=ae.target_fraction * 0.967, accept_low=ae.target_fraction * 0.922,
+            percentile=ae.percentile, max_frames=ae.max_iterations,
+        )
+        return ExposureResult(round(res.exposure_s, 6), res.level, res.frames, res.history, res.converged,
+                              res.limited)

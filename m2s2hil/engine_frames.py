@@ -1,0 +1,206 @@
+"""What happens to a frame after the snap: its metadata, the processing and storage stages.
+
+The engine thread builds each frame's metadata (:meth:`FrameStages.meta`) and the simulator's
+truth, then hands a :class:`CapturedFrame` to the :class:`~m2s2hil.pipeline.Pipeline`, whose
+threads run :meth:`FrameStages.process` (dark subtraction + demosaicing with
+``processing.pipeline.FrameProcessor``, one per master dark; then the QC hook; then an RGB
+preview) and :meth:`FrameStages.write` (``store.write_frame``).
+
+Frame metadata (``meta`` of each stored frame): ``exposure_s`` and ``gain`` as the camera
+reported them, ``temperature_c``, ``pose`` (read-back of both axes), ``lamps_on``
+(channels) and ``lamp_names``, ``timestamp`` (wall), ``clock_s`` (engine clock),
+``host_wall``, ``device_timestamp_s``, ``host_time_s``, ``block_id``, ``dark_id`` and
+``dark`` (its provenance), ``processing_method``, ``software_version``, ``rig_digest``,
+``attempt`` (1 + failed tries of this capture),
+``qc`` (the hook's result), ``saturated_fraction``, ``processing_warnings``; with auto
+exposure ``auto_exposure``; in continuous mode ``continuous`` (angle at mid-exposure, its
+error to the mark, measured speed, blur in degrees and pixels). The QC hook is
+``qc(processed_frame, event, meta) -> score``; its result is ``meta["qc"]``, a failure is
+``meta["qc_error"]`` (the frame is kept).
+
+On a simulated rig the simulator's label map is stored with the frame as its
+``truth_labels`` file (``store.frame(id).files["truth_labels"]``, a checksummed PNG) and
+``meta["truth"]`` holds the class names and the simulator's pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from m2s2hil.engine_darks import Dark
+from m2s2hil.plan import CaptureEvent, Sweep
+from m2s2hil.rig import Rig
+from m2s2hil.rig_ops import RigOps
+from m2s2hil.store import SessionStore
+
+log = logging.getLogger(__name__)
+
+QcHook = Callable[[Any, CaptureEvent, dict], Any]
+
+
+@dataclass
+class CapturedFrame:
+    """What the camera thread hands to the processing stage."""
+
+    data: np.ndarray
+    meta: dict
+    processor: Any
+    truth: Any = None
+
+
+@dataclass
+class FrameToStore:
+    """What the processing stage hands to the storage stage."""
+
+    raw: np.ndarray
+    cube: np.ndarray | None
+    preview: np.ndarray | None
+    meta: dict
+    truth: Any = None
+
+
+class FrameStages:
+    """Per-frame metadata and truth (engine thread), processing and storage (pipeline threads)."""
+
+    def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, *, qc: QcHook | None,
+                 save_truth: bool, processor_factory: Callable[..., Any] | None, version: str) -> None:
+        self.rig = rig
+        self.store = store
+        self.sweep = sweep
+        self.ops = ops
+        self.qc = qc
+        self.save_truth = save_truth
+        self.processor_factory = processor_factory
+        self.version = version
+        self._processors: dict[str | None, Any] = {}  # dark id -> frame processor
+
+    def processor(self, dark: Dark | None) -> Any:
+        """The frame processor for frames with this dark (built once per dark)."""
+        key = dark.dark_id if dark is not None else None
+        proc = self._processors.get(key)
+        if proc is None:
+            factory = self.processor_factory
+            if factory is None:
+                from m2s2hil.processing.pipeline import FrameProcessor as factory
+            kw: dict[str, Any] = {"dark": dark.master if dark is not None else None}
+            if self.rig.calibration is not None:  # crosstalk, white reference, real layout
+                kw["calibration"] = self.rig.calibration
+            proc = factory(self.sweep.processing, self.rig.config.camera.model, **kw)
+            self._processors[key] = proc
+        return proc
+
+    def meta(self, ev: CaptureEvent, frame: Any, exposure: float, dark: Dark | None, t_clock: float,
+             t_wall: float, attempt: int) -> dict:
+        """The frame's metadata at capture time (the processing stage adds its own)."""
+        pose = self.ops.pose()
+        return {
+            "exposure_s": float(frame.exposure_s or exposure),
+            "planned_exposure_s": ev.exposure_s,
+            "gain": float(frame.gain),
+            "temperature_c": float(frame.temperature_c),
+            "pose": {"turntable_deg": pose["turntable"], "tilt_deg": pose["tilt"]},
+            "lamps_on": sorted(self.ops.lit),
+            "lamp_names": self.ops.lamp_names(),
+            "lamp_on_s": self.ops.lamp_ages(),
+            "timestamp": t_wall,  # the engine clock's wall time (synthetic on a virtual clock)
+            "host_wall": time.time(),  # the computer's own wall time, for provenance
+            "clock_s": t_clock,
+            "host_time_s": float(frame.host_time_s),
+            "device_timestamp_s": float(frame.timestamp_s),
+            "block_id": int(frame.block_id),
+            "pixel_format": frame.pixel_format,
+            "dark_id": dark.dark_id if dark is not None else None,
+            "dark": dark.master.provenance() if dark is not None else None,
+            "processing_method": self.sweep.processing,
+            "software_version": self.version,
+            "rig_digest": self.rig.config.digest,
+            "mode": self.sweep.mode,
+            "attempt": attempt,
+            "simulated": bool(self.rig.simulated),
+        }
+
+    def truth(self) -> Any:
+        """The simulator's label map and pose for the frame just taken (None on a real rig)."""
+        if not self.save_truth:
+            return None
+        src = self.rig.extras.get("frame_source")
+        if src is None:
+            return None
+        t = src.truth()
+        labels = getattr(t, "labels", None)
+        if labels is None:
+            return None
+        return {"labels": np.array(labels, copy=True), "class_names": list(getattr(t, "class_names", [])),
+                "azimuth_deg": float(getattr(t, "azimuth_deg", math.nan)),
+                "tilt_deg": float(getattr(t, "tilt_deg", math.nan))}
+
+    def process(self, ev: CaptureEvent, cap: CapturedFrame) -> FrameToStore:
+        """Processing stage (pipeline thread): cube, QC hook, preview."""
+        meta = dict(cap.meta)
+        pf = cap.processor.process(cap.data)
+        cube = np.array(pf.cube, copy=True)  # the processor may reuse its output buffers
+        sat = getattr(pf, "saturated_mask", None)
+        meta["saturated_fraction"] = float(np.mean(sat)) if sat is not None else None
+        meta["processing_warnings"] = [str(w) for w in getattr(pf, "warnings", ())]
+        calibration = (getattr(pf, "info", None) or {}).get("calibration")
+        if calibration is not None:
+            meta["calibration"] = calibration
+        if self.qc is not None:
+            try:
+                meta["qc"] = jsonable(self.qc(pf, ev, meta))
+            except Exception as exc:  # a QC bug must not lose the frame; it is recorded
+                log.exception("QC hook failed on %s", ev.event_id)
+                meta["qc"] = None
+                meta["qc_error"] = f"{type(exc).__name__}: {exc}"
+        preview = rgb_preview(cube, self.rig.config.camera.model.bands_nm)
+        return FrameToStore(cap.data, cube, preview, meta, cap.truth)
+
+    def write(self, ev: CaptureEvent, p: FrameToStore) -> Any:
+        """Storage stage (pipeline thread): the frame's files and record."""
+        if p.truth is None:
+            return self.store.write_frame(ev, p.raw, p.cube, p.preview, p.meta)
+        # Simulation: the label map is stored as the frame's "truth_labels" file (checksummed
+        # and committed with it); the rest of the truth that is small goes into the metadata.
+        meta = {**p.meta, "truth": {k: v for k, v in p.truth.items() if k != "labels"}}
+        return self.store.write_frame(ev, p.raw, p.cube, p.preview, meta,
+                                      extra={"truth_labels": p.truth["labels"]})
+
+
+def qc_number(v: Any) -> float | None:
+    """The QC hook's result as one score (a number, or a dict's ``score``), for events."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return float(v)
+    if isinstance(v, dict):
+        s = v.get("score")
+        return float(s) if isinstance(s, (int, float)) else None
+    return None
+
+
+def jsonable(v: Any) -> Any:
+    """``v`` with numpy scalars made Python numbers and tuples made lists (for the metadata)."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, dict):
+        return {str(k): jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [jsonable(x) for x in v]
+    return v
+
+
+def rgb_preview(cube: np.ndarray | None, bands_nm: tuple[float, ...]) -> np.ndarray | None:
+    """An 8-bit RGB preview from the bands nearest 650/550/470 nm, stretched to the 99.5th percentile."""
+    if cube is None or cube.ndim != 3:
+        return None
+    nm = np.asarray(bands_nm)
+    idx = [int(np.argmin(np.abs(nm - t))) for t in (650.0, 550.0, 470.0)]
+    bands_first = cube.shape[0] == len(nm)
+    rgb = np.stack([cube[i] if bands_first else cube[..., i] for i in idx], axis=-1).astype(np.float32)
+    hi = float(np.percentile(rgb[::4, ::4], 99.5)) or 1.0
+    return np.clip(rgb * (255.0 / hi), 0, 255).astype(np.uint8)
