@@ -84,3 +84,28 @@ def test_capture_runs_a_complete_checksummed_session(tmp_path):
         }
     finally:
         store.close()
+
+
+def test_a_session_the_engine_pauses_itself_ends_the_command_with_exit_3(tmp_path):
+    """E.g. a full disk: the engine parks the rig; `capture` must exit (3), not wait forever."""
+    import threading
+
+    from engine_helpers import assert_rig_safe, session
+
+    from m2s2hil.commands.capture import EXIT_PAUSED, _run_engine
+    from m2s2hil.faults import FaultPolicy
+
+    policy = FaultPolicy.model_validate({"timeout": {"action": "suspend"}})
+    lost = {"toucan": [{"kind": "frame_timeout", "after": 1}]}
+    with session(tmp_path, faults=lost, policy=policy) as (rig, store, engine, _events):
+        result: list[int] = []
+        def run() -> None:
+            result.append(_run_engine(engine, virtual=True))
+
+        runner = threading.Thread(target=run, daemon=True)
+        runner.start()
+        runner.join(timeout=60)
+        assert not runner.is_alive(), "capture kept waiting on a paused session"
+        assert result == [EXIT_PAUSED]
+        assert store.state == "paused"
+        assert_rig_safe(rig)

@@ -11,7 +11,6 @@ full) and resumable; 4 aborted; 130 interrupted with Ctrl-C (paused and resumabl
 from __future__ import annotations
 
 import contextlib
-import threading
 from pathlib import Path
 
 import typer
@@ -123,17 +122,15 @@ def _run_engine(engine, *, virtual: bool) -> int:
                 ev = listener.get(timeout=0.1)
                 s = engine.status()
                 if isinstance(ev, ProgressEvent) or ev is None:
-                    where = (
-                        f"{s.lighting or '-'} {s.elevation or '-'} "
-                        f"az {s.azimuth_deg:6.1f}°" if s.azimuth_deg is not None else s.state.value
-                    )
+                    if s.azimuth_deg is None:
+                        where = s.state.value
+                    else:
+                        where = f"{s.lighting or '-'} {s.elevation or '-'} az {s.azimuth_deg:6.1f}°"
                     eta = "?" if s.eta_s is None else f"{s.eta_s:.0f} s" + (" (simulated)" if virtual else "")
                     bar.update(task, completed=s.done + s.skipped, description=where, eta=eta)
-                if s.state in (RunState.PAUSED,) and interrupts:
-                    break
-                if s.state.terminal and not thread.is_alive():
-                    break
-                if not thread.is_alive():
+                # Paused (by Ctrl-C or by the engine itself, e.g. a full disk): the session is
+                # saved and resumable, so the command ends rather than waiting for a resume.
+                if s.state is RunState.PAUSED or not thread.is_alive():
                     break
             except KeyboardInterrupt:
                 interrupts += 1
@@ -261,5 +258,3 @@ def _qc_hook():
         return None
     return capture_qc_hook()
 
-
-_ = threading  # engine threads are daemons; nothing else to join here
