@@ -268,8 +268,7 @@ def open_rig(
         if lights is None:
             raise ConfigError("rig", "devices", "no relay board for the lamps")
         if frame_source is not None:
-            _mirror_into_world(config, world, sims, axes, lights)
-            lights = axes.pop("_lights", lights)
+            axes, lights = _mirror_into_world(config, world, sims, axes, lights)
         rig = Rig(
             config=config,
             clock=clock,
@@ -291,16 +290,21 @@ def open_rig(
         raise
 
 
-def _mirror_into_world(config: RigConfig, world: Any, sims: dict, axes: dict, lights: Any) -> None:
-    """A local simulated camera with non-simulated motion or relays: mirror them."""
+def _mirror_into_world(
+    config: RigConfig, world: Any, sims: dict, axes: dict[str, Any], lights: Any
+) -> tuple[dict[str, Any], Any]:
+    """A local simulated camera with non-simulated motion or relays: wrap those drivers so
+    the camera's world follows what they read back. Returns the (possibly wrapped) devices."""
     from m2s2hil.mirror import MirroredAxis, MirroredLights
 
-    for role, ax in list(axes.items()):
+    out = dict(axes)
+    for role, ax in axes.items():
         if config.axes[role].device not in sims:
-            axes[role] = MirroredAxis(ax, world, role)
-            axes[role].position()
+            out[role] = MirroredAxis(ax, world, role)
+            out[role].position()
     if config.relay_device not in sims:
-        axes["_lights"] = MirroredLights(lights, world)
+        lights = MirroredLights(lights, world)
+    return out, lights
 
 
 def open_simulated_rig(
