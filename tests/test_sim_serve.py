@@ -53,3 +53,30 @@ def pytest_approx(value: float, tol: float):
     import pytest
 
     return pytest.approx(value, abs=tol)
+
+
+def test_generated_rig_file_keeps_everything_but_the_ports(tmp_path):
+    """Whatever TOML style the source file uses (dotted keys, inline tables), the served
+    rig file is the same configuration with only the serial ports changed."""
+    from importlib import resources
+
+    from m2s2hil.config import load_rig
+
+    text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
+    start, end = text.index("[devices.stage]"), text.index("# GRBL machine units")
+    inline = (
+        "[devices]\n"
+        'stage = { protocol = "grbl", port = "sim://stage", baudrate = 115200, timeout_s = 1.0 }\n'
+        'relays = { protocol = "modbus-rtu", port = "sim://relays", baudrate = 9600, unit = 1 }\n\n'
+    )
+    text = text[:start] + inline + text[end:]
+    src = tmp_path / "dotted.toml"
+    src.write_text(text)
+    cfg = load_rig(src)
+    with SimServer(cfg) as srv:
+        out = parse_rig(tomllib.loads(srv.rig_toml()), "served.toml")
+        paths = {d.name: d.path for d in srv.devices}
+    assert {n: d.port for n, d in out.devices.items()} == paths
+    expected = cfg.model_copy(update={"devices": {
+        n: d.model_copy(update={"port": paths[n]}) for n, d in cfg.devices.items()}})
+    assert out == expected

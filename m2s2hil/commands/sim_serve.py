@@ -36,7 +36,7 @@ def serve(
         table.add_row("camera", "u3v", "in-process only (USB)", "-")
         Console().print(table)
         if write_rig is not None:
-            write_rig.write_text(server.rig_toml(rig))
+            write_rig.write_text(server.rig_toml())
             typer.echo(f"rig file: {write_rig}")
         typer.echo("serving; Ctrl-C to stop", err=True)
         stop.wait(seconds)
