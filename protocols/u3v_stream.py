@@ -99,17 +99,23 @@ class ImageLeader:
         )
 
 
-def decode_leader(data: bytes) -> ImageLeader:
+def _checked_block(data: bytes, what: str, prefix: int, min_size: int) -> tuple[bytes, int]:
+    """Leader and trailer share a header (u32 prefix, u16 reserved, u16 size): check it."""
     data = bytes(data)
     if len(data) < 8:
-        raise CodecError(f"leader of {len(data)} bytes", data)
-    prefix, _r, size = struct.unpack_from("<IHH", data)
-    if prefix != LEADER_PREFIX:
-        raise CodecError(f"leader: bad prefix 0x{prefix:08X}", data)
+        raise CodecError(f"{what} of {len(data)} bytes", data)
+    got, _r, size = struct.unpack_from("<IHH", data)
+    if got != prefix:
+        raise CodecError(f"{what}: bad prefix 0x{got:08X}", data)
     if size != len(data):
-        raise CodecError(f"leader says {size} bytes, transfer has {len(data)}", data)
-    if size < IMAGE_LEADER_SIZE:
-        raise CodecError(f"leader of {size} bytes is shorter than an image leader (52)", data)
+        raise CodecError(f"{what} says {size} bytes, transfer has {len(data)}", data)
+    if size < min_size:
+        raise CodecError(f"{what} of {size} bytes is shorter than {min_size}", data)
+    return data, size
+
+
+def decode_leader(data: bytes) -> ImageLeader:
+    data, _size = _checked_block(data, "leader", LEADER_PREFIX, IMAGE_LEADER_SIZE)
     f = _LEADER.unpack_from(data)
     if f[5] != PAYLOAD_IMAGE:
         raise CodecError(f"leader: payload type 0x{f[5]:04X} is not an image", data)
@@ -140,16 +146,7 @@ class Trailer:
 
 
 def decode_trailer(data: bytes) -> Trailer:
-    data = bytes(data)
-    if len(data) < 8:
-        raise CodecError(f"trailer of {len(data)} bytes", data)
-    prefix, _r, size = struct.unpack_from("<IHH", data)
-    if prefix != TRAILER_PREFIX:
-        raise CodecError(f"trailer: bad prefix 0x{prefix:08X}", data)
-    if size != len(data):
-        raise CodecError(f"trailer says {size} bytes, transfer has {len(data)}", data)
-    if size < TRAILER_MIN_SIZE:
-        raise CodecError(f"trailer of {size} bytes is shorter than 28", data)
+    data, size = _checked_block(data, "trailer", TRAILER_PREFIX, TRAILER_MIN_SIZE)
     f = _TRAILER.unpack_from(data)
     size_y = struct.unpack_from("<I", data, TRAILER_MIN_SIZE)[0] if size >= IMAGE_TRAILER_SIZE else None
     return Trailer(block_id=f[3], status=f[4], valid_payload_size=f[6], size_y=size_y)
