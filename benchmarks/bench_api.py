@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import socket
 import statistics
@@ -33,6 +32,8 @@ from importlib import resources
 from pathlib import Path
 
 import httpx
+
+from m2s2hil.machine import describe_machine
 
 ROOT = Path(__file__).resolve().parent.parent
 MAX_REQUESTS = 200_000  # per run, whatever the duration
@@ -233,7 +234,7 @@ def main() -> int:
             proc.kill()
         log.close()
     result = {"size": args.size, "idle": idle, "runs": runs,
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "machine": describe_machine(),
               "load_average": os.getloadavg()}
     print(json.dumps(result, indent=2))
     if args.record:

@@ -32,8 +32,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import os
-import platform
 import shutil
 import sys
 import tempfile
@@ -47,6 +45,7 @@ import psutil
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.continuous import run_up_deg
 from m2s2hil.engine import Engine
+from m2s2hil.machine import describe_machine
 from m2s2hil.plan import Sweep
 from m2s2hil.simrig import open_simulated_rig
 from m2s2hil.store import SessionStore
@@ -404,10 +403,7 @@ def _chart(rows: list[dict], path: Path, exposure: float, radius: float, sharp_s
 
 
 def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    mem = psutil.virtual_memory().total / 2**30
-    return (f"{platform.node()} ({cpu}, {os.cpu_count()} logical CPUs, {mem:.0f} GiB), "
-            f"Python {platform.python_version()}")
+    return describe_machine()
 
 
 def markdown(res: dict) -> str:

@@ -14,14 +14,14 @@ Run: ``.venv/bin/python benchmarks/bench_u3v_stream.py [--frames N] [--format Mo
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 
 from m2s2hil.drivers.u3v import U3VCamera
 from m2s2hil.simulators.clock import RealClock, VirtualClock
 from m2s2hil.simulators.toucan import ToucanCamera
 from m2s2hil.simulators.u3v_backend import SimUsbBackend
+
+from m2s2hil.machine import describe_machine
 
 
 def run(clock, frames: int, fmt: str, fps: float) -> tuple[float, int, int]:
@@ -45,7 +45,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=130)
     ap.add_argument("--format", default="Mono10", choices=["Mono10", "Mono10p", "Mono12", "Mono16"])
     args = ap.parse_args()
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     print(f"# {machine}, {time.strftime('%Y-%m-%d')}")
     wall, _, _ = run(VirtualClock(), args.frames, args.format, 65.0)
     per_frame_ms = wall / args.frames * 1e3

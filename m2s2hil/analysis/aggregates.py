@@ -4,7 +4,6 @@ per_image.csv, speed against accuracy per segmenter, and the machine they ran on
 from __future__ import annotations
 
 import math
-import platform
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -68,9 +67,6 @@ def speed_accuracy(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
 
 def machine() -> str:
     """The machine line recorded with timings (summary.json, benchmark notes)."""
-    import os
+    from m2s2hil.machine import describe_machine
 
-    return (
-        f"{platform.machine()} {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
-        f"Python {platform.python_version()}"
-    )
+    return describe_machine()

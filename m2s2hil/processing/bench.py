@@ -9,7 +9,6 @@ noise-free ground-truth cubes (``groundtruth``), any (cube, mosaic) pair will do
 
 from __future__ import annotations
 
-import platform
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -257,30 +256,15 @@ def stability_study(
 
 
 def machine_description() -> str:
-    import os
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    try:
-        import psutil
-
-        mem = f", {psutil.virtual_memory().total / 2**30:.0f} GiB RAM"
-    except Exception:  # psutil missing or unsupported platform
-        mem = ""
+    """The machine line plus the versions of the libraries the kernels run on."""
     import cv2
     import numba
 
+    from m2s2hil.machine import describe_machine
+
     return (
-        f"{cpu}, {os.cpu_count()} logical CPUs{mem}; Python {platform.python_version()}, "
-        f"numpy {np.__version__}, "
-        f"OpenCV {cv2.__version__}, numba {numba.__version__} ({numba.get_num_threads()} threads)"
+        f"{describe_machine()}; numpy {np.__version__}, OpenCV {cv2.__version__}, "
+        f"numba {numba.__version__} ({numba.get_num_threads()} threads)"
     )
 
 
