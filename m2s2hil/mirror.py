@@ -8,6 +8,7 @@ copy what it read back into the world.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterable
 from typing import Any
 
@@ -49,6 +50,9 @@ class MirroredLights:
         try:
             self._lights.set(on)
         finally:
-            state = self._lights.state()
-            for ch in self._world.lamp_info:
-                self._world.set_lamp(ch, ch in state)
+            # Mirror what the board reads back, even after a failed set; if the board cannot
+            # be read either, keep the original error rather than this one.
+            with contextlib.suppress(Exception):
+                state = self._lights.state()
+                for ch in self._world.lamp_info:
+                    self._world.set_lamp(ch, ch in state)
