@@ -33,7 +33,7 @@ from pathlib import Path
 
 import httpx
 
-from m2s2hil.machine import describe_machine
+from m2s2hil.hostinfo import describe_machine
 
 ROOT = Path(__file__).resolve().parent.parent
 MAX_REQUESTS = 200_000  # per run, whatever the duration
@@ -155,7 +155,7 @@ def capture_run(http: httpx.Client, base: str, data: Path, *, rate: float | None
     watcher.join()
     while (st := http.get(f"/sessions/{sid}").json())["state"] not in TERMINAL:
         time.sleep(0.1)
-    from m2s2hil.store import SessionStore
+    from m2s2hil.store.session import SessionStore
 
     store = SessionStore.open(data, sid)
     try:

@@ -43,12 +43,12 @@ import numpy as np
 import psutil
 
 from m2s2hil.config import RigConfig, default_rig
-from m2s2hil.continuous import run_up_deg
-from m2s2hil.engine import Engine
-from m2s2hil.machine import describe_machine
+from m2s2hil.engine.marks import run_up_deg
+from m2s2hil.engine.runner import Engine
+from m2s2hil.hostinfo import describe_machine
 from m2s2hil.plan import Sweep
-from m2s2hil.simrig import open_simulated_rig
-from m2s2hil.store import SessionStore
+from m2s2hil.rig.factory import open_simulated_rig
+from m2s2hil.store.session import SessionStore
 
 ROOT = Path(__file__).resolve().parents[1]
 

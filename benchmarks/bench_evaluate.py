@@ -34,7 +34,7 @@ def bench_qc(repeats: int = 7) -> None:
     """Per-frame QC cost on the cube the engine hands to the hook (super-pixel, dark-subtracted)."""
     from m2s2hil.config import default_rig, parse_rig
     from m2s2hil.processing import FrameProcessor, build_master_dark
-    from m2s2hil.simrig import open_simulated_rig
+    from m2s2hil.rig.factory import open_simulated_rig
 
     print(f"machine: {machine()}")
     print(
@@ -85,7 +85,7 @@ def bench_qc(repeats: int = 7) -> None:
 def bench_engine_overhead(size: int = 2048) -> None:
     """The engine's processing stage with and without the QC hook (virtual clock: capture time is the
     simulated rig's, processing time is real), from the session's ``run_finished`` summary."""
-    from m2s2hil.store import SessionStore
+    from m2s2hil.store.session import SessionStore
 
     print(f"engine, {size}² sensor, voyager B2, weak, 8 azimuths (virtual clock)")
     print("| QC hook | frames | simulated capture s/frame | processing stage ms/frame | QC ms/frame (meta) |")

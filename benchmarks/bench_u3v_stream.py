@@ -21,7 +21,7 @@ from m2s2hil.simulators.clock import RealClock, VirtualClock
 from m2s2hil.simulators.toucan import ToucanCamera
 from m2s2hil.simulators.u3v_backend import SimUsbBackend
 
-from m2s2hil.machine import describe_machine
+from m2s2hil.hostinfo import describe_machine
 
 
 def run(clock, frames: int, fmt: str, fps: float) -> tuple[float, int, int]:

@@ -1,13 +1,19 @@
 """Typed device errors.
 
 Every error says which device, which command and which attempt; ``fault_class``
-is the key the engine's fault policy dispatches on.
+is the key the engine's fault policy dispatches on. ``DeviceError`` is an
+:class:`~m2s2hil.protocols.errors.M2S2Error` (drivers import only protocols), so a front end
+that turns our errors into one line turns a device's error into one line too.
 """
 
 from __future__ import annotations
 
+from m2s2hil.protocols.errors import M2S2Error
 
-class DeviceError(Exception):
+
+class DeviceError(M2S2Error):
+    """A device that failed, refused or did not answer."""
+
     fault_class = "protocol"
 
     def __init__(

@@ -85,3 +85,52 @@ class Camera(Protocol):
     def temperature_c(self) -> float: ...
 
     def close(self) -> None: ...
+
+
+# -- capabilities only some devices have --------------------------------------------------
+# The rig checks these once, when it opens (m2s2hil.rig.factory), and records what each
+# device can do (m2s2hil.rig.opened.DeviceLink); nothing probes a device for them later.
+
+
+@runtime_checkable
+class Homing(Protocol):
+    """Finds its reference position (a motion controller, or an axis homed on its own)."""
+
+    def home(self) -> object: ...
+
+
+@runtime_checkable
+class Reconnecting(Protocol):
+    """Reopens its link after a fault and restores its settings (GRBL, Zaber, U3V)."""
+
+    def reconnect(self) -> object: ...
+
+
+@runtime_checkable
+class Connecting(Protocol):
+    """Opens (or reopens) its link; a device without :class:`Reconnecting` is reconnected so."""
+
+    def connect(self) -> object: ...
+
+
+@runtime_checkable
+class RestartReport(Protocol):
+    """What a reconnect may report: ``reset`` when the controller restarted meanwhile and so
+    lost its position (GRBL after a power cycle); its axes must be homed again."""
+
+    reset: bool
+
+
+@runtime_checkable
+class AlarmClearing(Protocol):
+    """A controller that locks itself after an alarm until cleared (GRBL: soft reset, then
+    ``$H`` with ``home``, or ``$X``)."""
+
+    def clear_alarm(self, *, home: bool = False) -> object: ...
+
+
+@runtime_checkable
+class ContinuousRotation(Protocol):
+    """An axis that can turn at a constant speed until stopped (continuous capture)."""
+
+    def rotate(self, speed_dps: float, direction: int = +1) -> None: ...

@@ -1,19 +1,17 @@
-"""Application-level typed errors.
+"""The application's typed errors: bad input from a person, a file or a client.
 
-Device errors live in ``m2s2hil.drivers.errors``; these cover user input
-(configuration, catalog names, plans) and the application's own failures.
-Each carries enough context to say what went wrong and where.
+The root :class:`M2S2Error` lives in ``m2s2hil.protocols.errors`` so that device errors
+(``m2s2hil.drivers.errors``) share it; this module adds what only the application
+raises. Each error carries enough context to say what went wrong and where.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+from m2s2hil.protocols.errors import M2S2Error
 
-class M2S2Error(Exception):
-    """Base of every error the application raises on purpose."""
-
-    exit_code = 1
+__all__ = ["CatalogError", "ConfigError", "KeyedError", "M2S2Error", "UsageError", "validation_problem"]
 
 
 class UsageError(M2S2Error):
@@ -26,11 +24,9 @@ class CatalogError(UsageError):
     """A satellite, build, material, lighting condition or elevation that is not in the catalog."""
 
 
-class ConfigError(UsageError):
-    """A rig configuration file that cannot be used.
-
-    ``source`` names the file, ``key`` the dotted path inside it.
-    """
+class KeyedError(UsageError):
+    """Bad input found in a file or document: ``source`` names it, ``key`` the dotted path
+    inside it (empty for the whole thing), ``problem`` what is wrong."""
 
     def __init__(self, source: str, key: str, problem: str) -> None:
         self.source = source
@@ -38,6 +34,10 @@ class ConfigError(UsageError):
         self.problem = problem
         where = f"{source}: {key}" if key else source
         super().__init__(f"{where}: {problem}")
+
+
+class ConfigError(KeyedError):
+    """A rig configuration file that cannot be used."""
 
 
 def validation_problem(exc: Any) -> tuple[str, str]:

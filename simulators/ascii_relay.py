@@ -36,7 +36,7 @@ from m2s2hil.protocols.ascii_relay import (
     parse_command,
 )
 from m2s2hil.simulators.device import SimDevice
-from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.fault_injection import FaultPlan
 
 OnChange = Callable[[int, bool], None]
 

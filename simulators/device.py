@@ -15,7 +15,7 @@ import itertools
 import threading
 from typing import Any
 
-from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.fault_injection import FaultPlan
 
 
 class PortVanished(OSError):

@@ -1,5 +1,16 @@
 """A GRBL 1.1 motion controller as a simulated serial device.
 
+Sources (cited as [config], [iface], [src:FILE] below and in docs/simulators.md):
+[config] the GRBL v1.1 wiki page "Grbl v1.1 Configuration" (the ``$$`` settings);
+[iface] the GRBL v1.1 wiki page "Grbl v1.1 Interface" (replies, push messages, reports);
+[src:FILE] the firmware source, gnea/grbl v1.1h, ``grbl/FILE``.
+
+Factory state: the settings table of ``DEFAULTS_GENERIC`` [src:defaults.h] (the build a
+stock Arduino GRBL 1.1h carries): homing, soft and hard limits off (``$22=0``, ``$20=0``,
+``$21=0``), 250 steps/mm, 500 mm/min maximum rates, 10 mm/s² accelerations, 200 mm
+travel, status reports in machine position (``$10=1``). Anything can be changed through
+the constructor (``settings=``, per-axis :class:`GrblAxisSettings`, ``version=``).
+
 What it does as the firmware does (byte level, replies strictly in order):
 - real-time bytes (``?`` ``!`` ``~`` 0x18 0x85) act at once and never enter the
   receive buffer; everything else goes into a 127-byte receive buffer. Bytes that
@@ -13,19 +24,38 @@ What it does as the firmware does (byte level, replies strictly in order):
   (units/s^2), computed from the clock: the position at time t, not stepped.
 - ``!`` decelerates to Hold:1 then Hold:0, ``~`` resumes (ignored until the hold is
   complete); ``!`` during a jog and 0x85 cancel the jog.
-- 0x18 soft reset: ``ALARM:3`` first if it was moving (ALARM:6 while homing), then
-  the banner; the alarm state survives the reset.
-- ``$22=1`` boots locked in Alarm (HOMING_INIT_LOCK); ``$H`` homes, ``$X`` unlocks.
-- soft limits (``$20=1``, needs ``$22=1``): a G0/G1 target outside the travel gives
-  the critical ``ALARM:2`` (no ``ok`` for that line), a jog target ``error:15``. The
-  travel follows a HOMING_FORCE_SET_ORIGIN build: ``[-$13x, 0]``, or ``[0, $13x]``
-  for an axis whose ``$23`` direction bit is set.
-- after ``ALARM:1``/``ALARM:2`` ("Reset to continue") everything but 0x18 is ignored,
-  ``?`` included (GRBL 1.1's critical-event loop is empty).
+- 0x18 soft reset: ``ALARM:3`` first if it was moving (ALARM:6 while homing), then an
+  ``ok`` for a line the firmware was still executing (the line that hit the soft limit,
+  or a motion line blocked on a full planner: its ``mc_line`` returns into the main loop,
+  which reports ``ok`` before bailing out [src:protocol.c, motion_control.c]), then the
+  banner ``Grbl 1.1h ['$' for help]`` and, when the controller is in alarm,
+  ``[MSG:'$H'|'$X' to unlock]`` [src:main.c, protocol.c]. The alarm state survives.
+- ``$22=1`` boots locked in Alarm (HOMING_INIT_LOCK, on in the stock config.h);
+  ``$H`` homes, ``$X`` unlocks; with ``$22=0`` ``$H`` answers ``error:5`` (setting
+  disabled) [src:system.c].
+- soft limits (``$20=1``, needs ``$22=1``): a G0/G1 target outside the travel makes the
+  firmware feed-hold to a controlled stop if it is moving, then raise the critical
+  ``ALARM:2`` and ``[MSG:Reset to continue]``; the offending line gets its ``ok`` only
+  after the reset [src:limits.c limits_soft_check]. A jog target outside is
+  ``error:15``. The travel follows a HOMING_FORCE_SET_ORIGIN build: ``[-$13x, 0]``, or
+  ``[0, $13x]`` for an axis whose ``$23`` direction bit is set.
+- after ``ALARM:1``/``ALARM:2`` (the only critical alarms [src:protocol.c]) everything
+  but 0x18 is ignored, ``?`` included (GRBL 1.1's critical-event loop is empty).
+- a failed homing (``ALARM:8``/``ALARM:9``) is not critical: the firmware resets itself
+  (mc_reset), so ``ALARM:9`` is followed by the ``ok`` of ``$H`` [src:system.c], the
+  banner and ``[MSG:'$H'|'$X' to unlock]``.
+- work coordinates: ``G10 L2``/``G10 L20`` write G54..G59 offsets, kept across resets and
+  power cycles as the firmware keeps them in EEPROM; a G10 waits until motion has
+  finished (FORCE_BUFFER_SYNC_DURING_EEPROM_WRITE, on in the stock config.h). ``$#``
+  reports them; status reports give MPos or WPos (= MPos − WCO) per ``$10`` bit 0 and
+  ``WCO:`` every 10 reports (30 while moving) [iface].
 
 Simplifications: homing drives each homed axis straight to its switch (physical 0)
-at ``$25``, from either side, and sets MPos 0 there; no pull-off or locate phase.
-``$C``, ``$SLP``, arcs, dwell, offsets are not simulated (``error:3``/``error:20``).
+at ``$25``, from either side, and sets MPos 0 there; no pull-off or locate phase. An
+axis configured without a switch (``GrblAxisSettings.homing=False``) is left out of the
+homing cycle, as a firmware built with other HOMING_CYCLE masks would. Only G54 can be
+the active system; G92 and tool offsets are not simulated. ``$C``, ``$SLP``, arcs,
+dwell are not simulated (``error:3``/``error:20``).
 No banner at construction (a board that booted before the host opened the port);
 a vanished port is a power cycle: position is lost (MPos 0 where the axis stands),
 and the banner greets the host when the port comes back.
@@ -75,28 +105,41 @@ from m2s2hil.protocols.grbl import (
     is_realtime,
 )
 from m2s2hil.simulators.device import SimDevice
-from m2s2hil.simulators.faults import FaultPlan
-from m2s2hil.simulators.grbl_gcode import GcodeError, Modal, parse_block
+from m2s2hil.simulators.fault_injection import FaultPlan
+from m2s2hil.simulators.grbl_gcode import CoordWrite, GcodeError, Modal, Motion, parse_block
 from m2s2hil.simulators.motion_kit import InOrderReplies, PathLog, Segment, Trapezoid
 
 PLANNER_BLOCKS = 15
 _SETTING_WRITE = re.compile(r"\$(\d+(?:\.\d*)?)=(.*)")
+_G10 = re.compile(rb"G0*10(?![0-9.])")
+#: The coordinate tables ``$#`` lists, in its order [iface]: G54..G59, G28, G30.
+COORD_TABLES = (54, 55, 56, 57, 58, 59, 28, 30)
 
 
 @dataclass(frozen=True)
 class GrblAxisSettings:
-    max_rate: float = 3600.0  # $11x, units/min
-    accel: float = 120.0  # $12x, units/s^2
-    max_travel: float = 740.0  # $13x, units
-    homing: bool = True  # has a home switch and takes part in $H
+    """One axis; the defaults are DEFAULTS_GENERIC of GRBL 1.1h [src:defaults.h]."""
+
+    max_rate: float = 500.0  # $11x, units/min (DEFAULT_X_MAX_RATE)
+    accel: float = 10.0  # $12x, units/s^2 (DEFAULT_X_ACCELERATION = 10*60*60 mm/min^2)
+    max_travel: float = 200.0  # $13x, units (DEFAULT_X_MAX_TRAVEL)
+    steps_per_unit: float = 250.0  # $10x (DEFAULT_X_STEPS_PER_MM)
+    homing: bool = True  # a home switch is fitted and the axis takes part in $H (when $22=1)
     start: float = 0.0  # physical position at power-up, units from the home switch
 
 
-BASE_SETTINGS: dict[int, float] = {
+#: GRBL 1.1h factory settings without the per-axis ones, DEFAULTS_GENERIC [src:defaults.h],
+#: numbered as in [config]: $0 step pulse 10 us, $1 idle delay 25 ms, $2..$6 invert masks 0,
+#: $10=1 status reports MPos, $11 junction deviation 0.010 mm, $12 arc tolerance 0.002 mm,
+#: $13=0 mm, $20=0 soft limits off, $21=0 hard limits off, $22=0 homing off, $23=0 homing
+#: direction mask, $24 homing feed 25 mm/min, $25 homing seek 500 mm/min, $26 debounce
+#: 250 ms, $27 pull-off 1 mm, $30/$31 spindle 1000/0 rpm, $32=0 laser mode off.
+FACTORY_SETTINGS: dict[int, float] = {
     0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
-    20: 0, 21: 0, 22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0,
-    30: 1000, 31: 0, 32: 0, 100: 250.0, 101: 250.0, 102: 250.0,
+    20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0,
+    30: 1000, 31: 0, 32: 0,
 }  # fmt: skip
+BASE_SETTINGS = FACTORY_SETTINGS  # the name older callers import
 
 
 @dataclass(frozen=True)
@@ -124,8 +167,9 @@ class GrblSimulator(InOrderReplies, SimDevice):
         if unknown:
             raise ValueError(f"GRBL has axes X, Y, Z; got {sorted(unknown)}")
         per_axis = [axes.get(a, GrblAxisSettings()) for a in AXES]
-        self.settings: dict[int, float] = dict(BASE_SETTINGS)
+        self.settings: dict[int, float] = dict(FACTORY_SETTINGS)
         for i, ax in enumerate(per_axis):
+            self.settings[100 + i] = ax.steps_per_unit
             self.settings[110 + i] = ax.max_rate
             self.settings[120 + i] = ax.accel
             self.settings[130 + i] = ax.max_travel
@@ -136,6 +180,8 @@ class GrblSimulator(InOrderReplies, SimDevice):
         self.rx_overflow = 0  # bytes lost to a full receive buffer
         self.build_text = ""
         self.startup_blocks = {0: "", 1: ""}
+        # Work coordinate tables, machine units; EEPROM on the board, so they survive resets.
+        self.coord_data: dict[int, list[float]] = {n: [0.0, 0.0, 0.0] for n in COORD_TABLES}
         self._offset = [ax.start for ax in per_axis]  # physical = MPos + offset
         self._rest: tuple[float, ...] = (0.0, 0.0, 0.0)
         self._state = "Alarm" if self.settings[22] else "Idle"
@@ -153,6 +199,8 @@ class GrblSimulator(InOrderReplies, SimDevice):
         self._modal = Modal()
         self._critical = False
         self._hold_done = False
+        self._soft_limit_stop = False  # braking before ALARM:2; the line waits for its ok
+        self._owed_ok = False  # a line still executing when a critical alarm struck
         self._wco_counter = 0
         self._ov_counter = 0
 
@@ -241,6 +289,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
             alarm = self._pending_alarm
             if seg is not None and alarm is not None and alarm[0] <= now and alarm[0] <= seg.t_end:
                 self._pending_alarm = None
+                self._owed_ok = self._owed_ok or self._line_blocked()
                 self._rest = seg.position(alarm[0])
                 self._segment, self._current = None, None
                 self._queue.clear()
@@ -256,6 +305,12 @@ class GrblSimulator(InOrderReplies, SimDevice):
                 self._pending_alarm = None  # the move ended (stalled) before the alarm point
             if seg.kind == "hold":
                 self._hold_done = True
+            elif seg.kind == "softlimit":
+                # The controlled stop is over: now the critical alarm [src:limits.c].
+                self._queue.clear()
+                self._current = None
+                self._soft_limit_stop = False
+                self._alarm(GrblAlarm.SOFT_LIMIT)
             elif seg.kind == "jogcancel":
                 self._queue.clear()
                 self._current = None
@@ -359,6 +414,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
     def _soft_reset(self, now: float) -> None:
         moving = self._state in ("Run", "Jog", "Home") or (self._state == "Hold" and not self._hold_done)
         homing = self._state == "Home"
+        owed = self._owed_ok or self._soft_limit_stop or homing or self._line_blocked()
         self._rest = self._position(now)
         self._reset_volatile()
         if moving:
@@ -367,7 +423,16 @@ class GrblSimulator(InOrderReplies, SimDevice):
             self._push(Alarm(code))
         elif self._state != "Alarm":
             self._state = "Idle"
+        if owed:
+            # The interrupted line returns to the main loop, which reports it before it
+            # notices the abort [src:protocol.c protocol_main_loop].
+            self._reply(Ok())
         self._greet()
+
+    def _line_blocked(self) -> bool:
+        """A complete line waits while the planner is full: the firmware is inside its
+        ``mc_line``, waiting for room (the simulator keeps the line in the buffer)."""
+        return self._planner_full() and (b"\n" in self._rx or b"\r" in self._rx)
 
     def _greet(self) -> None:
         self._reply(Banner(self.version))
@@ -382,8 +447,10 @@ class GrblSimulator(InOrderReplies, SimDevice):
             self._critical = True
             self._push(Message(MSG_RESET_TO_CONTINUE))
         elif code in (GrblAlarm.HOMING_FAIL_PULLOFF, GrblAlarm.HOMING_FAIL_APPROACH):
-            # A failed homing cycle resets the controller (the $H line never gets its ok).
+            # A failed homing cycle resets the controller itself (mc_reset): $H still returns
+            # STATUS_OK, so its ok comes before the banner [src:limits.c, system.c].
             self._reset_volatile()
+            self._reply(Ok())
             self._greet()
 
     def _outside_travel(self, target: tuple[float, ...]) -> bool:
@@ -401,13 +468,23 @@ class GrblSimulator(InOrderReplies, SimDevice):
     def _planner_full(self) -> bool:
         return len(self._queue) + (self._current is not None) >= PLANNER_BLOCKS
 
+    def _motion_pending(self) -> bool:
+        return self._segment is not None or self._current is not None or bool(self._queue)
+
     def _process_lines(self, now: float) -> None:
-        while not self._critical and self._state != "Home" and not self._planner_full():
+        while (
+            not self._critical
+            and not self._soft_limit_stop
+            and self._state != "Home"
+            and not self._planner_full()
+        ):
             ends = [i for i in (self._rx.find(b"\n"), self._rx.find(b"\r")) if i >= 0]
             if not ends:
                 return
             cut = min(ends) + 1
             chunk = bytes(self._rx[:cut])
+            if self._motion_pending() and _G10.search(chunk.upper().replace(b" ", b"")):
+                return  # an EEPROM write waits for the motion to finish [src:settings.c]
             del self._rx[:cut]
             for line in self._splitter.feed(chunk):
                 self._execute(line, now)
@@ -432,16 +509,33 @@ class GrblSimulator(InOrderReplies, SimDevice):
             return self._current.target
         return self._rest
 
+    def work_offset(self) -> tuple[float, ...]:
+        """WCO: the active (G54) offset; G92 and tool offsets are not simulated."""
+        return tuple(self.coord_data[54])
+
     def _gcode(self, text: str, now: float) -> None:
         try:
-            modal, motion = parse_block(text, self._modal, self._planned_end())
+            modal, motion = parse_block(text, self._modal, self._planned_end(), offset=self.work_offset())
         except GcodeError as exc:
             self._error(exc.code)
             return
         self._modal = modal
+        if isinstance(motion, CoordWrite):
+            table = self.coord_data[53 + (motion.system or 1)]
+            for i, v in motion.offsets.items():
+                table[i] = v
+            self._wco_counter = 0  # the next report carries the new WCO [src:report.c]
+            self._reply(Ok())
+            return
         if motion is not None:
             if self._outside_travel(motion.target):
-                self._rest = self._position(now)
+                self._owed_ok = True  # answered only after the reset [src:limits.c]
+                if self._segment is not None and self._state == "Run":
+                    # Moving: a controlled stop first (a feed hold), then the alarm.
+                    self._queue.clear()
+                    self._brake(now, "softlimit")
+                    self._state, self._hold_done, self._soft_limit_stop = "Hold", False, True
+                    return
                 self._segment, self._current = None, None
                 self._queue.clear()
                 self._alarm(GrblAlarm.SOFT_LIMIT)
@@ -456,11 +550,13 @@ class GrblSimulator(InOrderReplies, SimDevice):
             self._error(GrblError.NOT_IDLE)
             return
         try:
-            _, motion = parse_block(text[3:], self._modal, self._planned_end(), jog=True)
+            _, motion = parse_block(
+                text[3:], self._modal, self._planned_end(), jog=True, offset=self.work_offset()
+            )
         except GcodeError as exc:
             self._error(exc.code)
             return
-        assert motion is not None
+        assert isinstance(motion, Motion)
         if self._outside_travel(motion.target):
             self._error(GrblError.JOG_TRAVEL_EXCEEDED)
             return
@@ -498,8 +594,11 @@ class GrblSimulator(InOrderReplies, SimDevice):
             self._home(now)
         elif text == "$#":
             zero = "0.000,0.000,0.000"
-            lines = [Feedback(f"G{n}", zero) for n in (54, 55, 56, 57, 58, 59, 28, 30, 92)]
-            self._reply(*lines, Feedback("TLO", "0.000"), Feedback("PRB", f"{zero}:0"), Ok())
+            lines = [Feedback(f"G{n}", ",".join(f"{v:.3f}" for v in self.coord_data[n]))
+                     for n in COORD_TABLES]
+            self._reply(
+                *lines, Feedback("G92", zero), Feedback("TLO", "0.000"), Feedback("PRB", f"{zero}:0"), Ok()
+            )
         elif text == "$I":
             opts = BuildOptions("V", PLANNER_BLOCKS, RX_BUFFER_SIZE)
             self._reply(BuildInfo(f"{self.version}.{self.build}", self.build_text), opts, Ok())
@@ -511,10 +610,14 @@ class GrblSimulator(InOrderReplies, SimDevice):
         elif re.fullmatch(r"\$N[01]=.*", text):
             self.startup_blocks[int(text[2])] = text[4:]
             self._reply(Ok())
-        elif text.startswith("$RST="):
-            if text[5:] in ("$", "*"):
+        elif text in ("$RST=$", "$RST=#", "$RST=*"):
+            if text[5] in "$*":
                 self.settings = dict(self._defaults)
-            self._reply(Ok())
+            if text[5] in "#*":
+                self.coord_data = {n: [0.0, 0.0, 0.0] for n in COORD_TABLES}
+            # "[MSG:Restoring defaults]", ok, then the firmware resets itself [src:system.c].
+            self._reply(Message("Restoring defaults"), Ok())
+            self._soft_reset(now)
         else:
             self._write_setting(text)
 
@@ -582,7 +685,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
         else:
             self._wco_counter = (30 if busy else 10) - 1
             self._ov_counter = self._ov_counter or 1  # overrides on the next report
-            wco = (0.0, 0.0, 0.0)
+            wco = self.work_offset()
         if self._ov_counter > 0:
             self._ov_counter -= 1
         else:
@@ -593,7 +696,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
             state=state,
             substate=int(sub) if sub else None,
             mpos=pos if mask & 1 else None,
-            wpos=None if mask & 1 else pos,
+            wpos=None if mask & 1 else tuple(p - o for p, o in zip(pos, self.work_offset(), strict=True)),
             buffer=(
                 PLANNER_BLOCKS - len(self._queue) - (self._current is not None),
                 RX_BUFFER_USABLE - len(self._rx),

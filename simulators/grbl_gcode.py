@@ -2,9 +2,18 @@
 
 Lines arrive cleaned by ``DeviceLineSplitter`` (upper case, no spaces or comments).
 Supported: G0 G1 (motion), G90 G91, G20 G21, G53 (machine coordinates for one block),
-G17 G54 G94 (accepted, nothing to do), F, X Y Z, N, S T (ignored), M5 M9 (no-ops), and
-``$J=`` jog blocks. Anything else GRBL knows (arcs, dwell, probing, offsets, ...) is
-answered ``error:20`` here: a simulator limitation, not GRBL's behaviour.
+G10 L2/L20 P0..P6 (write a work coordinate system), G17 G54 G94 (accepted, nothing to
+do), F, X Y Z, N, S T (ignored), M5 M9 (no-ops), and ``$J=`` jog blocks. Anything else
+GRBL knows (arcs, dwell, probing, G55..G59 selection, G92, ...) is answered ``error:20``
+here: a simulator limitation, not GRBL's behaviour.
+
+Work coordinates follow the GRBL 1.1 G-code parser (grbl/gcode.c, gnea/grbl v1.1h):
+absolute targets are work positions, machine = work + WCO (G54 offset; no G92, no tool
+offset here); G53 bypasses the offset. ``G10 L2 Pn`` stores the given values as the
+offset of coordinate system n (P0 = the active one, P1..P6 = G54..G59); ``G10 L20 Pn``
+stores the offset that makes the current position read as the given values
+(offset = machine position − value). A missing L or P is ``error:28``, P above 6
+``error:29``, any other L ``error:20``, no axis words ``error:26``.
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ _G_GROUP = {
     20: "units",
     21: "units",
     53: "non_modal",
+    10: "non_modal",
     17: "plane",
     54: "wcs",
     94: "feed_mode",
@@ -53,6 +63,15 @@ class Motion:
     feed: float | None  # mm/min; None = rapid
 
 
+@dataclass(frozen=True)
+class CoordWrite:
+    """``G10``: new offsets (machine units) for some axes of coordinate system ``system``
+    (1..6 = G54..G59; 0 = the active one)."""
+
+    system: int
+    offsets: dict[int, float]
+
+
 def tokenize(text: str) -> list[tuple[str, float]]:
     """Words as (letter, value)."""
     words = []
@@ -70,14 +89,22 @@ def tokenize(text: str) -> list[tuple[str, float]]:
 
 
 def parse_block(
-    text: str, modal: Modal, position: tuple[float, ...], *, jog: bool = False
-) -> tuple[Modal, Motion | None]:
-    """Execute one block's parsing: the new modal state and the motion it asks for."""
+    text: str,
+    modal: Modal,
+    position: tuple[float, ...],
+    *,
+    jog: bool = False,
+    offset: tuple[float, ...] = (0.0, 0.0, 0.0),
+) -> tuple[Modal, Motion | CoordWrite | None]:
+    """Execute one block's parsing: the new modal state and the motion (or offset write)
+    it asks for. ``position`` is the planned machine position, ``offset`` the active work
+    coordinate offset."""
     words = tokenize(text)
     groups: set[str] = set()
     g_codes: set[int] = set()
     axes: dict[int, float] = {}
     feed: float | None = None
+    values: dict[str, float] = {}
     for letter, value in words:
         if letter == "G":
             code = int(value) if value.is_integer() else -1
@@ -109,6 +136,10 @@ def parse_block(
                 raise GcodeError(GrblError.INVALID_LINE_NUMBER)
         elif letter in "ST" and not jog:
             continue
+        elif letter in "LP" and not jog:
+            if letter in values:
+                raise GcodeError(GrblError.WORD_REPEATED)
+            values[letter] = value
         else:
             raise GcodeError(GrblError.INVALID_JOG_COMMAND if jog else GrblError.UNUSED_WORDS)
 
@@ -123,8 +154,12 @@ def parse_block(
             raise GcodeError(GrblError.UNDEFINED_FEED_RATE)
         if not axes:
             raise GcodeError(GrblError.NO_AXIS_WORDS)
-        return modal, Motion(_target(axes, position, absolute, 53 in g_codes, scale), feed_mm)
+        return modal, Motion(_target(axes, position, absolute, 53 in g_codes, scale, offset), feed_mm)
 
+    if 10 in g_codes:
+        return modal, _coord_write(values, axes, position, scale, explicit_motion=bool(g_codes & {0, 1}))
+    if values:
+        raise GcodeError(GrblError.UNUSED_WORDS)
     new = replace(modal, absolute=absolute, inches=inches, motion=motion)
     if feed_mm is not None:
         new = replace(new, feed=feed_mm)
@@ -134,15 +169,51 @@ def parse_block(
         return new, None  # G0/G1 alone only sets the motion mode, as in GRBL
     if motion == 1 and new.feed <= 0:
         raise GcodeError(GrblError.UNDEFINED_FEED_RATE)
-    target = _target(axes, position, absolute, 53 in g_codes, scale)
+    target = _target(axes, position, absolute, 53 in g_codes, scale, offset)
     return new, Motion(target, None if motion == 0 else new.feed)
 
 
+def _coord_write(
+    values: dict[str, float],
+    axes: dict[int, float],
+    position: tuple[float, ...],
+    scale: float,
+    *,
+    explicit_motion: bool,
+) -> CoordWrite:
+    if explicit_motion:
+        raise GcodeError(GrblError.AXIS_COMMAND_CONFLICT)  # G10 and G0/G1 both want the axis words
+    if "L" not in values or "P" not in values:
+        raise GcodeError(GrblError.VALUE_WORD_MISSING)
+    if not values["P"].is_integer() or not values["L"].is_integer():
+        raise GcodeError(GrblError.VALUE_NOT_INTEGER)
+    system, mode = int(values["P"]), int(values["L"])
+    if mode not in (2, 20):
+        raise GcodeError(GrblError.UNSUPPORTED_COMMAND)
+    if not 0 <= system <= 6:
+        raise GcodeError(GrblError.UNSUPPORTED_COORD_SYSTEM)
+    if not axes:
+        raise GcodeError(GrblError.NO_AXIS_WORDS)
+    if mode == 2:
+        return CoordWrite(system, {i: v * scale for i, v in axes.items()})
+    return CoordWrite(system, {i: position[i] - v * scale for i, v in axes.items()})
+
+
 def _target(
-    axes: dict[int, float], position: tuple[float, ...], absolute: bool, machine: bool, scale: float
+    axes: dict[int, float],
+    position: tuple[float, ...],
+    absolute: bool,
+    machine: bool,
+    scale: float,
+    offset: tuple[float, ...] = (0.0, 0.0, 0.0),
 ) -> tuple[float, ...]:
     out = list(position)
     for idx, value in axes.items():
         v = value * scale
-        out[idx] = v if (absolute or machine) else position[idx] + v
+        if machine:
+            out[idx] = v
+        elif absolute:
+            out[idx] = v + offset[idx]
+        else:
+            out[idx] = position[idx] + v
     return tuple(out)

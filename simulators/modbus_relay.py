@@ -39,7 +39,7 @@ from m2s2hil.protocols.modbus_relay import (
     WriteCoils,
 )
 from m2s2hil.simulators.device import SimDevice
-from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.fault_injection import FaultPlan
 from pymodbus.constants import ExcCodes
 
 OnChange = Callable[[int, bool], None]

@@ -49,7 +49,7 @@ import numpy as np
 from m2s2hil.protocols import u3v
 from m2s2hil.protocols.errors import CodecError
 from m2s2hil.protocols.u3v import ABRM, SBRM, SIRM, PixelFormat, Status
-from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.fault_injection import FaultPlan
 from m2s2hil.simulators.u3v_backend import (
     EP_CONTROL_IN,
     EP_CONTROL_OUT,

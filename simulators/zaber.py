@@ -44,7 +44,7 @@ from m2s2hil.protocols.zaber import (
     highest_flag,
 )
 from m2s2hil.simulators.device import SimDevice
-from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.fault_injection import FaultPlan
 from m2s2hil.simulators.motion_kit import InOrderReplies, PathLog, Segment, Trapezoid
 
 AXIS_SETTINGS_RW = ("maxspeed", "accel", "limit.min", "limit.max", "pos")

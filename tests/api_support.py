@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 
 from m2s2hil.api import SessionManager, create_app
 from m2s2hil.config import RigConfig, default_rig, parse_rig
-from m2s2hil.simrig import open_simulated_rig
+from m2s2hil.rig.factory import open_simulated_rig
 
 TOKEN = "s3cret-token-for-tests-0123456789"
 TERMINAL = ("completed", "failed", "aborted", "cancelled")

@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 from m2s2hil.config import RigConfig, default_rig
-from m2s2hil.engine import Engine
-from m2s2hil.engine_state import EngineEvent, RunState
+from m2s2hil.engine.runner import Engine
+from m2s2hil.engine.state import EngineEvent, RunState
 from m2s2hil.plan import Sweep
-from m2s2hil.rig import Rig
-from m2s2hil.simrig import open_simulated_rig
-from m2s2hil.store import SessionStore
+from m2s2hil.rig.factory import open_simulated_rig
+from m2s2hil.rig.opened import Rig
+from m2s2hil.store.session import SessionStore
 
 
 def small_rig_config(size: int = 256) -> RigConfig:

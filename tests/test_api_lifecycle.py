@@ -17,7 +17,7 @@ from api_support import free_port
 
 from m2s2hil.api.manager import RootLocked, lock_data_root
 from m2s2hil.config import load_rig
-from m2s2hil.store import SessionStore
+from m2s2hil.store.session import SessionStore
 
 
 def _rig_file(tmp: Path) -> Path:

@@ -11,8 +11,8 @@ import pytest
 from api_support import daemon, long_sweep, sweep
 from PIL import Image
 
-from m2s2hil.frame_files import decode_tiff
-from m2s2hil.store import SessionStore
+from m2s2hil.store.frame_files import decode_tiff
+from m2s2hil.store.session import SessionStore
 
 
 @pytest.fixture

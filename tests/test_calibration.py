@@ -15,10 +15,10 @@ from m2s2hil.processing.calibration import (
     load_calibration,
     save_calibration,
 )
+from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.demosaic import get_demosaicer
 from m2s2hil.processing.errors import CalibrationError
 from m2s2hil.processing.mosaic import MosaicLayout, sample_cube
-from m2s2hil.processing.pipeline import FrameProcessor
 
 # 16-bit so that quantising the synthetic raw frames costs < 1e-4 relative
 CAM = CameraModel(width=64, height=64, bit_depth=16)

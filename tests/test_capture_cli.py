@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from m2s2hil.store import SessionStore, list_sessions
+from m2s2hil.store.session import SessionStore, list_sessions
 
 
 def small_rig(tmp_path: Path) -> Path:
@@ -93,7 +93,7 @@ def test_a_session_the_engine_pauses_itself_ends_the_command_with_exit_3(tmp_pat
     from engine_helpers import assert_rig_safe, session
 
     from m2s2hil.commands.capture import EXIT_PAUSED, _run_engine
-    from m2s2hil.faults import FaultPolicy
+    from m2s2hil.engine.fault_policy import FaultPolicy
 
     policy = FaultPolicy.model_validate({"timeout": {"action": "suspend"}})
     lost = {"toucan": [{"kind": "frame_timeout", "after": 1}]}

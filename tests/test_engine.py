@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 from engine_helpers import assert_rig_safe, session, small_sweep, wait_for_state
 
-from m2s2hil.atomic import DiskFull
-from m2s2hil.engine import SessionFailed
-from m2s2hil.engine_state import (
+from m2s2hil.engine.runner import SessionFailed
+from m2s2hil.engine.state import (
     Captured,
     FrameStored,
     IllegalTransition,
@@ -20,7 +19,8 @@ from m2s2hil.engine_state import (
     SessionFinished,
     StateChanged,
 )
-from m2s2hil.frame_files import decode_png
+from m2s2hil.store.atomic import DiskFull
+from m2s2hil.store.frame_files import decode_png
 
 S = RunState
 
@@ -170,7 +170,7 @@ def test_slow_disk_keeps_the_pipeline_bounded(tmp_path) -> None:
 def test_disk_space_is_checked_before_anything_moves(tmp_path, monkeypatch) -> None:
     with session(tmp_path) as (rig, store, engine, _events):
         usage = shutil.disk_usage(tmp_path)
-        monkeypatch.setattr("m2s2hil.atomic.shutil.disk_usage",
+        monkeypatch.setattr("m2s2hil.store.atomic.shutil.disk_usage",
                             lambda p: usage._replace(free=10 * 1024 * 1024))
         with pytest.raises(SessionFailed) as ei:
             engine.run()
@@ -189,7 +189,7 @@ def test_full_disk_mid_session_suspends_then_resumes_cleanly(tmp_path, monkeypat
         u = real(p)
         return u._replace(free=1024) if full["on"] else u
 
-    monkeypatch.setattr("m2s2hil.atomic.shutil.disk_usage", usage)
+    monkeypatch.setattr("m2s2hil.store.atomic.shutil.disk_usage", usage)
     with session(tmp_path, small_sweep(azimuth_step_deg=30), **MID) as (rig, store, engine, _events):
         def fill_disk(e) -> None:
             if isinstance(e, FrameStored) and e.index == 1:

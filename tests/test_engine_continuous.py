@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from engine_helpers import assert_rig_safe, session, small_sweep, wait_for_state
 
-from m2s2hil.engine_state import Captured, RunState, StateChanged
+from m2s2hil.engine.state import Captured, RunState, StateChanged
 
 S = RunState
 SPEED = 30.0  # deg/s; the camera streams at 65 frames/s, so frames are 0.46 deg apart

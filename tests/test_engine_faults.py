@@ -10,9 +10,9 @@ import pytest
 from engine_helpers import assert_rig_safe, session
 from m2s2hil.drivers.errors import DeviceGone, RelayNotSwitched, StageAlarm
 
-from m2s2hil.engine import SessionFailed
-from m2s2hil.engine_state import FaultRecorded, FrameStored, RunState, SessionFinished
-from m2s2hil.faults import FaultPolicy
+from m2s2hil.engine.fault_policy import FaultPolicy
+from m2s2hil.engine.runner import SessionFailed
+from m2s2hil.engine.state import FaultRecorded, FrameStored, RunState, SessionFinished
 
 S = RunState
 FRAME_IDS = ["weak/E1/az000/f0", "weak/E1/az090/f0", "weak/E1/az180/f0", "weak/E1/az270/f0"]

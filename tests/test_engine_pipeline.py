@@ -8,7 +8,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from m2s2hil.pipeline import Pipeline, PipelineClosed
+from m2s2hil.engine.pipeline import Pipeline, PipelineClosed
 
 
 def test_items_flow_in_order_and_results_carry_no_pixels() -> None:

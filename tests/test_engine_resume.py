@@ -12,10 +12,10 @@ from pathlib import Path
 
 from engine_helpers import assert_rig_safe, small_rig_config, small_sweep
 
-from m2s2hil.engine import Engine, interrupted_sessions
-from m2s2hil.engine_state import RunState
-from m2s2hil.simrig import open_simulated_rig
-from m2s2hil.store import SessionStore
+from m2s2hil.engine.runner import Engine, interrupted_sessions
+from m2s2hil.engine.state import RunState
+from m2s2hil.rig.factory import open_simulated_rig
+from m2s2hil.store.session import SessionStore
 
 TESTS = Path(__file__).parent
 
@@ -25,10 +25,10 @@ CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {tests!r})
     from engine_helpers import small_rig_config, small_sweep
-    from m2s2hil.engine import Engine
-    from m2s2hil.engine_state import FrameStored
-    from m2s2hil.simrig import open_simulated_rig
-    from m2s2hil.store import SessionStore
+    from m2s2hil.engine.runner import Engine
+    from m2s2hil.engine.state import FrameStored
+    from m2s2hil.rig.factory import open_simulated_rig
+    from m2s2hil.store.session import SessionStore
 
     cfg = small_rig_config()
     sweep = small_sweep(azimuth_step_deg=45)

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from m2s2hil.autoexposure import find_exposure, percentile_dn
-from m2s2hil.continuous import AngleTrack, MarkMatcher, TimestampMapper, blur_estimate, run_up_deg
-from m2s2hil.engine_state import (
+from m2s2hil.engine.exposure_search import find_exposure, percentile_dn
+from m2s2hil.engine.fault_policy import FaultPolicy, FaultRule, fault_class_of
+from m2s2hil.engine.marks import AngleTrack, MarkMatcher, TimestampMapper, blur_estimate, run_up_deg
+from m2s2hil.engine.state import (
     TRANSITIONS,
     EventBus,
     FaultInfo,
@@ -22,7 +23,6 @@ from m2s2hil.engine_state import (
     check_transition,
 )
 from m2s2hil.errors import UsageError
-from m2s2hil.faults import FaultPolicy, FaultRule, fault_class_of
 
 S = RunState
 
@@ -140,7 +140,7 @@ def test_policy_is_data_and_rejects_nonsense() -> None:
 def test_fault_class_of() -> None:
     from m2s2hil.drivers.errors import DeviceGone, DeviceTimeout, FrameIncomplete, MoveNotVerified
 
-    from m2s2hil.atomic import DiskFull
+    from m2s2hil.store.atomic import DiskFull
 
     assert fault_class_of(DeviceTimeout("x")) == "timeout"
     assert fault_class_of(DeviceGone("x")) == "device_gone"

@@ -24,8 +24,8 @@ from m2s2hil.analysis.evaluate import (
 )
 from m2s2hil.analysis.parallel import SchedulerUnavailable, dask_client
 from m2s2hil.commands import evaluate as evaluate_commands
-from m2s2hil.export import export_session
-from m2s2hil.store import SessionStore
+from m2s2hil.store.export import export_session
+from m2s2hil.store.session import SessionStore
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ from typer.testing import CliRunner
 
 from m2s2hil.commands import export as export_cmd
 from m2s2hil.config import RigConfig, default_rig
-from m2s2hil.export import ExportError, export_session, to_8bit
 from m2s2hil.plan import Sweep
-from m2s2hil.store import SessionStore
+from m2s2hil.store.export import ExportError, export_session, to_8bit
+from m2s2hil.store.session import SessionStore
 
 N = 64
 

@@ -195,6 +195,7 @@ def stage(vclock):
             "X": GrblAxisSettings(max_rate=3600, accel=120, start=40.0),
             "Y": GrblAxisSettings(max_rate=1200, accel=40),
         },
+        settings={22: 1},  # commissioned with home switches (the factory has homing off)
     )
     registry.register(name, sim)
     ctl = GrblController(f"sim://{name}", clock=vclock)
@@ -336,7 +337,7 @@ FAST = {
 
 @pytest.mark.timeout(20)
 def test_driver_over_a_pty():
-    sim = GrblSimulator("grbl-pty", RealClock(), axes=FAST)
+    sim = GrblSimulator("grbl-pty", RealClock(), axes=FAST, settings={22: 1})
     with PtyServer(sim) as srv:
         ctl = GrblController(srv.path, clock=SYSTEM_CLOCK, timeout_s=0.5, poll_interval_s=0.01)
         try:
@@ -356,7 +357,7 @@ def test_driver_over_a_pty():
 @pytest.mark.timeout(20)
 def test_third_party_client_speaks_grbl_to_the_simulator():
     """Plain pyserial, the way a GRBL sender would, against the simulator on a pty."""
-    sim = GrblSimulator("grbl-3p", RealClock(), axes=FAST, settings={22: 0})
+    sim = GrblSimulator("grbl-3p", RealClock(), axes=FAST)  # factory: homing off
     with PtyServer(sim) as srv:
         port = serial.Serial(srv.path, 115200, timeout=1)
         try:
@@ -383,7 +384,7 @@ def test_threads_share_the_line_one_transaction_at_a_time():
     """The engine polls status while the API reads it: replies must never cross."""
     import threading
 
-    sim = GrblSimulator("locked", RealClock(), settings={22: 0})
+    sim = GrblSimulator("locked", RealClock())
     with PtyServer(sim) as srv:
         ctl = GrblController(srv.path, device="stage", timeout_s=2.0, retries=0)
         ctl.connect()

@@ -42,9 +42,29 @@ class Host:
 
 def make(vclock, **kw):
     kw.setdefault("axes", {"X": GrblAxisSettings(max_rate=600.0, accel=100.0)})
-    kw.setdefault("settings", {22: 0})
     sim = GrblSimulator("g", vclock, **kw)
     return sim, Host(sim, vclock)
+
+
+BANNER_UNLOCK = [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+
+
+def test_factory_settings_are_grbl_1_1h_defaults_generic(vclock):
+    # DEFAULTS_GENERIC of grbl/defaults.h (gnea/grbl v1.1h), numbered as in "Grbl v1.1 Configuration".
+    sim = GrblSimulator("g", vclock)
+    host = Host(sim, vclock)
+    got = {e.number: e.value for e in host.io(b"$$\n") if isinstance(e, Setting)}
+    expected = {
+        0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
+        20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
+        100: 250.0, 101: 250.0, 102: 250.0, 110: 500.0, 111: 500.0, 112: 500.0,
+        120: 10.0, 121: 10.0, 122: 10.0, 130: 200.0, 131: 200.0, 132: 200.0,
+    }  # fmt: skip
+    assert got == expected
+    # Homing disabled: no boot lock, and $H is "setting disabled".
+    assert host.status().state == "Idle"
+    assert host.io(b"$H\n") == [Error(GrblError.HOMING_DISABLED)]
+    assert host.io(b"\x18") == [Banner("1.1h")]  # not in alarm: no unlock message
 
 
 def test_motion_is_a_trapezoid_on_the_clock(vclock):
@@ -57,7 +77,7 @@ def test_motion_is_a_trapezoid_on_the_clock(vclock):
     assert (st_.state, st_.mpos[0], st_.feed) == ("Run", pytest.approx(5.5), pytest.approx(600.0))
     vclock.advance(0.5)
     assert host.status().state == "Idle" and sim.axis_position("X") == pytest.approx(10.0)
-    # A diagonal is limited by the slower axis (Y keeps the default 3600/min, 120/s^2).
+    # A diagonal is limited by the slower axis (Y keeps the factory 500/min, 10/s^2).
     host.io(b"G91 G1 X3 Y4 F6000\n")
     vclock.advance(10)
     assert sim.machine_position() == pytest.approx((13.0, 4.0, 0.0))
@@ -102,7 +122,7 @@ def test_cr_lf_is_two_lines_and_settings_round_trip(vclock):
 
 def test_boot_lock_homing_and_unlock(vclock):
     sim, host = make(vclock, settings={22: 1}, axes={"X": GrblAxisSettings(start=25.0)})
-    assert host.io(b"\x18") == [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+    assert host.io(b"\x18") == BANNER_UNLOCK
     assert host.io(b"G0 X1\n") == [Error(GrblError.LOCKED)]
     assert host.io(b"$H\n") == []  # homing takes time: the ok comes when it is done
     assert host.status().state == "Home"
@@ -122,9 +142,33 @@ def test_soft_limit_alarm_is_critical_until_reset(vclock):
     assert host.io(b"G0 X-150\n") == [Alarm(GrblAlarm.SOFT_LIMIT), Message("Reset to continue")]
     assert host.io(b"?", wait=1) == []  # GRBL ignores everything but a reset now
     assert host.io(b"$X\n", wait=1) == []
-    assert host.io(b"\x18") == [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+    # The offending line's mc_line returns after the reset: its ok, then the banner.
+    assert host.io(b"\x18") == [Ok(), *BANNER_UNLOCK]
     assert host.status().state == "Alarm"
     assert host.io(b"$X\n") == [Message("Caution: Unlocked"), Ok()]
+
+
+def test_soft_limit_while_moving_stops_under_control_first(vclock):
+    x = GrblAxisSettings(max_rate=600.0, accel=100.0, max_travel=100.0)
+    sim, host = make(vclock, settings={22: 1, 20: 1}, axes={"X": x})
+    host.io(b"$X\n")
+    assert host.io(b"G0 X-50\n", wait=1) == [Ok()]  # cruising at 10 units/s by now
+    assert host.io(b"G0 X-150\n") == []  # feed hold first: no alarm, no ok yet
+    assert host.status().state_text == "Hold:1"
+    vclock.advance(0.2)  # 0.1 s to brake from 10 units/s at 100 units/s^2
+    assert host.io() == [Alarm(GrblAlarm.SOFT_LIMIT), Message("Reset to continue")]
+    stopped = sim.axis_position("X")
+    assert stopped == pytest.approx(-10.0)  # 0.5 ramping up + 9 cruising + 0.5 braking
+    assert host.io(b"\x18") == [Ok(), *BANNER_UNLOCK]
+    assert sim.axis_position("X") == stopped
+
+
+def test_reset_during_soft_limit_stop_is_alarm_3_then_the_ok(vclock):
+    _, host = make(vclock, settings={22: 1, 20: 1}, axes={"X": GrblAxisSettings(max_travel=100.0)})
+    host.io(b"$X\n")
+    host.io(b"G0 X-50\n", wait=1)
+    host.io(b"G0 X-150\n")
+    assert host.io(b"\x18") == [Alarm(GrblAlarm.RESET_DURING_MOTION), Ok(), *BANNER_UNLOCK]
 
 
 def test_hold_resume_and_jog_cancel(vclock):
@@ -150,11 +194,7 @@ def test_hold_resume_and_jog_cancel(vclock):
 def test_reset_while_moving_alarms(vclock):
     sim, host = make(vclock)
     host.io(b"G0 X10\n", wait=0.3)
-    assert host.io(b"\x18") == [
-        Alarm(GrblAlarm.RESET_DURING_MOTION),
-        Banner("1.1h"),
-        Message("'$H'|'$X' to unlock"),
-    ]
+    assert host.io(b"\x18") == [Alarm(GrblAlarm.RESET_DURING_MOTION), *BANNER_UNLOCK]
     x = sim.axis_position("X")
     vclock.advance(2)
     assert sim.axis_position("X") == x and host.status().state == "Alarm"
@@ -175,16 +215,76 @@ def test_stall_and_alarm_faults(vclock):
     vclock.advance(5)
     assert host.io() == [Alarm(GrblAlarm.HARD_LIMIT), Message("Reset to continue")]
     assert sim.axis_position("X") == pytest.approx(15.0)
+    assert host.io(b"\x18") == BANNER_UNLOCK  # no line was executing: no ok
+
+
+def test_hard_limit_with_a_line_blocked_on_the_planner_owes_its_ok(vclock):
+    sim, host = make(vclock)
+    sim.faults.add("alarm", at=0.5)
+    lines = b"".join(f"G1 X{i % 2 + 1} F60\n".encode() for i in range(16))  # one more than the planner
+    assert sum(isinstance(e, Ok) for e in host.io(lines)) == 15
+    vclock.advance(1)
+    assert host.io() == [Alarm(GrblAlarm.HARD_LIMIT), Message("Reset to continue")]
+    assert host.io(b"\x18") == [Ok(), *BANNER_UNLOCK]
 
 
 def test_homing_failure_alarm_resets_the_controller(vclock):
     sim, host = make(vclock, settings={22: 1}, axes={"X": GrblAxisSettings(start=10.0)})
     sim.faults.add("alarm")
-    assert host.io(b"$H\n", wait=10) == [
-        Alarm(GrblAlarm.HOMING_FAIL_APPROACH),
-        Banner("1.1h"),
-        Message("'$H'|'$X' to unlock"),
-    ]
+    # limits_go_home resets the controller itself; $H still returns STATUS_OK (system.c).
+    assert host.io(b"$H\n", wait=10) == [Alarm(GrblAlarm.HOMING_FAIL_APPROACH), Ok(), *BANNER_UNLOCK]
+
+
+def test_reset_during_homing_is_alarm_6_then_the_ok_of_h(vclock):
+    _, host = make(vclock, settings={22: 1}, axes={"X": GrblAxisSettings(start=10.0)})
+    host.io(b"$H\n", wait=0.5)
+    assert host.io(b"\x18") == [Alarm(GrblAlarm.HOMING_FAIL_RESET), Ok(), *BANNER_UNLOCK]
+
+
+def test_g10_l20_sets_a_persistent_work_origin(vclock):
+    sim, host = make(vclock)
+    host.io(b"G0 X7\n", wait=5)
+    assert host.io(b"G10 L20 P1 X0\n") == [Ok()]
+    events = host.io(b"$#\n")
+    assert events[0].tag == "G54" and events[0].text == "7.000,0.000,0.000" and events[-1] == Ok()
+    report = host.status()
+    assert report.mpos[0] == pytest.approx(7.0) and report.wco == (7.0, 0.0, 0.0)
+    host.io(b"G0 X3\n", wait=5)  # absolute targets are work coordinates now
+    assert sim.axis_position("X") == pytest.approx(10.0)
+    host.io(b"G53 G0 X1\n", wait=5)  # G53: machine coordinates
+    assert sim.axis_position("X") == pytest.approx(1.0)
+    assert host.io(b"$10=0\n") == [Ok()]
+    assert host.status().wpos[0] == pytest.approx(-6.0)
+    # EEPROM: survives a soft reset and a power cycle (where MPos restarts at 0).
+    host.io(b"\x18")
+    sim.vanish(0.1)
+    vclock.advance(0.2)
+    host.io()
+    assert host.io(b"$#\n")[0].text == "7.000,0.000,0.000"
+    assert host.io(b"G10 L2 P1 X-2.5\n") == [Ok()]
+    assert host.io(b"$#\n")[0].text == "-2.500,0.000,0.000"
+    assert host.io(b"$RST=#\n") == [Message("Restoring defaults"), Ok(), Banner("1.1h")]
+    assert host.io(b"$#\n")[0].text == "0.000,0.000,0.000"
+
+
+def test_g10_waits_for_motion_to_finish(vclock):
+    sim, host = make(vclock)
+    assert host.io(b"G0 X10\nG10 L20 P1 X0\n") == [Ok()]  # the G10 waits (buffer sync)
+    assert host.io(wait=5) == [Ok()]
+    assert sim.coord_data[54][0] == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize(
+    "line, code",
+    [(b"G10 P1 X0\n", GrblError.VALUE_WORD_MISSING), (b"G10 L20 X0\n", GrblError.VALUE_WORD_MISSING),
+     (b"G10 L20 P7 X0\n", GrblError.UNSUPPORTED_COORD_SYSTEM),
+     (b"G10 L1 P1 X0\n", GrblError.UNSUPPORTED_COMMAND), (b"G10 L20 P1\n", GrblError.NO_AXIS_WORDS),
+     (b"G0 G10 L20 P1 X0\n", GrblError.AXIS_COMMAND_CONFLICT)],
+)  # fmt: skip
+def test_g10_errors(vclock, line, code):
+    _, host = make(vclock)
+    assert host.io(line) == [Error(code)]
+
 
 
 def test_receive_buffer_loses_bytes_unless_the_host_counts(vclock):
@@ -223,7 +323,7 @@ def test_power_cycle_loses_position_not_the_axis(vclock):
     host.io(b"G0 X7\n", wait=5)
     sim.vanish(0.5)
     vclock.advance(0.6)
-    assert host.io() == [Banner("1.1h"), Message("'$H'|'$X' to unlock")]
+    assert host.io() == BANNER_UNLOCK
     assert host.status().mpos[0] == 0.0 and sim.axis_position("X") == pytest.approx(7.0)
 
 

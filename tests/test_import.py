@@ -11,11 +11,11 @@ from typer.testing import CliRunner
 
 from m2s2hil.commands import importer as import_cmd
 from m2s2hil.config import RigConfig, default_rig
-from m2s2hil.export import export_session
-from m2s2hil.frame_files import encode_png
-from m2s2hil.importer import DatasetImportError, import_dataset
 from m2s2hil.plan import Sweep
-from m2s2hil.store import SessionStore, list_sessions
+from m2s2hil.store.export import export_session
+from m2s2hil.store.frame_files import encode_png
+from m2s2hil.store.importer import DatasetImportError, import_dataset
+from m2s2hil.store.session import SessionStore, list_sessions
 
 N = 64
 

@@ -323,7 +323,7 @@ def test_missing_port_is_device_gone_at_once(vclock):
 
 
 def test_fault_plan_from_config_reaches_the_board(vclock):
-    from m2s2hil.simulators.faults import FaultPlan
+    from m2s2hil.simulators.fault_injection import FaultPlan
 
     plan = FaultPlan.from_config([{"kind": "relay_stuck", "channel": 3, "count": -1}])
     sim = ModbusRelaySim("mb-cfg", vclock, plan)

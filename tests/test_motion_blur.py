@@ -182,7 +182,7 @@ def test_the_camera_exposes_over_its_exposure_interval(tmp_path) -> None:
     frame shows the turntable where it was at mid-exposure, blurred by its turning."""
     from engine_helpers import small_rig_config
 
-    from m2s2hil.simrig import open_simulated_rig
+    from m2s2hil.rig.factory import open_simulated_rig
 
     rig = open_simulated_rig(small_rig_config(256))
     try:

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from m2s2hil.config import CameraModel
+from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark, subtract_dark
 from m2s2hil.processing.demosaic import get_demosaicer
 from m2s2hil.processing.errors import FrameShapeError, UnknownMethodError
 from m2s2hil.processing.groundtruth import mosaic_of, synthetic_scene
-from m2s2hil.processing.metrics import Quality, evaluate, psnr_per_band, sam_deg, ssim_per_band
+from m2s2hil.processing.image_quality import Quality, evaluate, psnr_per_band, sam_deg, ssim_per_band
 from m2s2hil.processing.mosaic import MosaicLayout
-from m2s2hil.processing.pipeline import FrameProcessor
 
 CAM = CameraModel(width=64, height=48)
 LAYOUT = MosaicLayout.from_camera(CAM)

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from m2s2hil.config import CameraModel
+from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark
 from m2s2hil.processing.demosaic import METHODS, get_demosaicer
 from m2s2hil.processing.groundtruth import mosaic_of, synthetic_scene
-from m2s2hil.processing.metrics import sam_map
+from m2s2hil.processing.image_quality import sam_map
 from m2s2hil.processing.mosaic import MosaicLayout, cell_mean
-from m2s2hil.processing.pipeline import FrameProcessor
 from m2s2hil.processing.stability import check_phase, grow_mask
 
 CAM = CameraModel(width=128, height=128)

@@ -21,7 +21,7 @@ from m2s2hil.analysis.qc import (
 )
 from m2s2hil.analysis.report_html import write_session_report
 from m2s2hil.analysis.synthetic import synthetic_scene
-from m2s2hil.store import SessionStore
+from m2s2hil.store.session import SessionStore
 
 
 def square_cube(level: float = 500.0, size: int = 64, lo: int = 16, hi: int = 48) -> np.ndarray:

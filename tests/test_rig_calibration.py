@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from m2s2hil.config import load_rig
-from m2s2hil.engine import Engine
+from m2s2hil.engine.runner import Engine
 from m2s2hil.errors import UsageError
 from m2s2hil.plan import Sweep
 from m2s2hil.processing.calibration import CameraCalibration, save_calibration
-from m2s2hil.rig_factory import open_rig
-from m2s2hil.store import SessionStore
+from m2s2hil.rig.factory import open_rig
+from m2s2hil.store.session import SessionStore
 
 
 def _rig_file(tmp_path, calibration: str) -> str:

@@ -5,8 +5,8 @@ import tomllib
 import serial
 
 from m2s2hil.config import parse_rig
-from m2s2hil.rig_factory import open_rig
-from m2s2hil.simserve import SimServer
+from m2s2hil.rig.factory import open_rig
+from m2s2hil.rig.pty_serve import SimServer
 
 
 def test_plain_pyserial_talks_grbl_on_the_pty():

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import tifffile
 
-import m2s2hil.atomic as atomic
+import m2s2hil.store.atomic as atomic
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.plan import Sweep
-from m2s2hil.store import (
+from m2s2hil.store.session import (
     DiskFull,
     DuplicateEvent,
     InvalidImage,
@@ -387,7 +387,7 @@ def test_extra_arrays_are_written_checksummed_and_committed_with_the_frame(store
 
 def test_metadata_with_a_nested_shape_key_reads_back(tmp_path):
     """tifffile must not mistake our JSON description for its shaped-series metadata."""
-    from m2s2hil.frame_files import decode_tiff, encode_tiff
+    from m2s2hil.store.frame_files import decode_tiff, encode_tiff
 
     raw = np.arange(64, dtype=np.uint16).reshape(8, 8)
     data = encode_tiff(raw, {"dark": {"shape": [8, 8], "n": 4}, "exposure_s": 0.008})

@@ -16,7 +16,7 @@ from m2s2hil.drivers.interfaces import Camera
 from m2s2hil.drivers.u3v import U3VCamera
 from m2s2hil.drivers.u3v_control import GenCPError
 from m2s2hil.protocols import u3v
-from m2s2hil.simulators.faults import FaultPlan
+from m2s2hil.simulators.fault_injection import FaultPlan
 from m2s2hil.simulators.toucan import FeatureReg, GradientSource, ToucanCamera
 from m2s2hil.simulators.u3v_backend import SimUsbBackend
 

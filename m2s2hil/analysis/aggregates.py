@@ -67,6 +67,6 @@ def speed_accuracy(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
 
 def machine() -> str:
     """The machine line recorded with timings (summary.json, benchmark notes)."""
-    from m2s2hil.machine import describe_machine
+    from m2s2hil.hostinfo import describe_machine
 
     return describe_machine()

@@ -74,7 +74,7 @@ from m2s2hil.analysis.options import (
     mtc_predictor,
 )
 from m2s2hil.analysis.study import SCENARIOS, simulate_session, stability_markdown, stability_study
-from m2s2hil.frame_files import decode_tiff
+from m2s2hil.store.frame_files import decode_tiff
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +189,7 @@ def evaluate_jobs(
 def write_evaluation(result: EvaluationResult, out: str | Path) -> dict[str, Path]:
     """Write table2.csv/.md, per_image.csv, significance.md, the charts and summary.json into ``out``."""
     from m2s2hil.analysis import charts, table2
-    from m2s2hil.atomic import write_text_atomic
+    from m2s2hil.store.atomic import write_text_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -104,7 +104,7 @@ def dataset_jobs(path: str | Path) -> list[FrameJob]:
     PNG; cubes are super-pixel hypercubes of the default TOUCAN layout, without darks.
     """
     from m2s2hil.config import CameraModel
-    from m2s2hil.importer import find_hil_root, scan_published_layout
+    from m2s2hil.store.importer import find_hil_root, scan_published_layout
 
     root = Path(path)
     hil = find_hil_root(root)
@@ -138,7 +138,7 @@ def dataset_jobs(path: str | Path) -> list[FrameJob]:
 def collect_jobs(target: str | Path, root: str | Path | None = None) -> tuple[list[FrameJob], list[str]]:
     """Jobs and a description of each source for: a session folder, a session id under
     ``root``, a data root holding sessions, or an exported dataset folder."""
-    from m2s2hil.store import JOURNAL, SessionStore, default_data_root, list_sessions
+    from m2s2hil.store.session import JOURNAL, SessionStore, default_data_root, list_sessions
 
     p = Path(target)
     if (p / JOURNAL).is_file():

@@ -21,7 +21,7 @@ import numpy as np
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.jobs import EvaluationError, FileRef, FrameJob
-from m2s2hil.frame_files import decode_tiff
+from m2s2hil.store.frame_files import decode_tiff
 
 
 def labels_to_cube(labels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -68,8 +68,8 @@ def _processor(job: FrameJob, method: str, shape: tuple[int, int] | None = None)
     """A FrameProcessor per (method, camera, dark), cached per worker process (its buffers
     are large for the full-resolution methods)."""
     from m2s2hil.config import CameraModel
+    from m2s2hil.processing.chain import FrameProcessor
     from m2s2hil.processing.dark import MasterDark
-    from m2s2hil.processing.pipeline import FrameProcessor
 
     camera = dict(job.camera)
     if shape is not None:  # exported PNGs: the sensor size is the file's
@@ -99,7 +99,7 @@ def _processor(job: FrameJob, method: str, shape: tuple[int, int] | None = None)
 
 def load_cube(job: FrameJob, reprocess: str | None = None) -> np.ndarray:
     """The image's float32 cube (bands, H, W): stored, or processed from the raw."""
-    from m2s2hil.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_png
 
     if job.cube is not None and reprocess is None:
         cube, _ = decode_tiff(_read(job.cube))
@@ -123,7 +123,7 @@ def load_truth(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:
     """The job's label map on the cube's grid (``labels_to_cube``), or None without one."""
     if job.labels is None:
         return None
-    from m2s2hil.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_png
 
     data = _read(job.labels)
     arr = decode_tiff(data)[0] if job.labels.path.endswith((".tif", ".tiff")) else decode_png(data)

@@ -91,7 +91,7 @@ def _saturation_on_grid(raw: np.ndarray, full_scale: int, shape: tuple[int, int]
 
 def _compute_qc(job: Any, config: QcConfig) -> tuple[float | None, list[str], np.ndarray | None]:
     from m2s2hil.analysis.evaluate import decode_tiff, load_cube
-    from m2s2hil.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_png
 
     cube = load_cube(job)
     sat = None
@@ -109,7 +109,7 @@ def collect_views(
 ) -> tuple[list[FrameView], dict[str, Any]]:
     """Per-frame views (scores, flags, thumbnails) of an open SessionStore, and its QC summary."""
     from m2s2hil.analysis.evaluate import session_jobs
-    from m2s2hil.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_png
 
     cfg = config or QcConfig()
     jobs = {j.image_id.split("/", 1)[1]: j for j in session_jobs(store)}
@@ -326,7 +326,7 @@ def write_session_report(
     config: QcConfig | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """Write the HTML report (default ``<session folder>/report.html``); returns (path, QC summary)."""
-    from m2s2hil.atomic import write_text_atomic
+    from m2s2hil.store.atomic import write_text_atomic
 
     views, summary = collect_views(store, thumb_px=thumb_px, compute_missing=compute_missing, config=config)
     path = Path(out) if out is not None else Path(store.path) / "report.html"

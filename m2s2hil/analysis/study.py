@@ -40,10 +40,10 @@ def simulate_session(
     hook, or None. Returns the session folder."""
     from m2s2hil.analysis.qc import capture_qc_hook
     from m2s2hil.config import default_rig, parse_rig
-    from m2s2hil.engine import Engine
+    from m2s2hil.engine.runner import Engine
     from m2s2hil.plan import Sweep
-    from m2s2hil.simrig import open_simulated_rig
-    from m2s2hil.store import SessionStore
+    from m2s2hil.rig.factory import open_simulated_rig
+    from m2s2hil.store.session import SessionStore
 
     data = default_rig().model_dump(mode="json")
     data["camera"]["model"].update(width=int(size), height=int(size))
@@ -107,8 +107,8 @@ def stability_study(
     from m2s2hil.analysis import charts, table2
     from m2s2hil.analysis.evaluate import evaluate_jobs  # the driver imports this module
     from m2s2hil.analysis.qc import qc_of_meta
-    from m2s2hil.atomic import write_text_atomic
-    from m2s2hil.store import SessionStore
+    from m2s2hil.store.atomic import write_text_atomic
+    from m2s2hil.store.session import SessionStore
 
     chosen = dict(scenarios or SCENARIOS)
     root = Path(root)

@@ -6,12 +6,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from m2s2hil.atomic import DiskFull, check_free_space
 from m2s2hil.config import RigConfig
 from m2s2hil.errors import UsageError
 from m2s2hil.plan import Sweep
 from m2s2hil.processing.demosaic import check_method
-from m2s2hil.store import estimate_session_bytes
+from m2s2hil.store.atomic import DiskFull, check_free_space
+from m2s2hil.store.session import estimate_session_bytes
 
 from .errors import PlanTooLarge
 

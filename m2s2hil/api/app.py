@@ -34,16 +34,16 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from sse_starlette import EventSourceResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from m2s2hil.atomic import DiskFull
-from m2s2hil.engine_state import IllegalTransition
+from m2s2hil.engine.state import IllegalTransition
 from m2s2hil.errors import M2S2Error, UsageError
-from m2s2hil.frame_files import dumps
 from m2s2hil.plan import Sweep
-from m2s2hil.store import SessionCorrupt, software_version
+from m2s2hil.store.atomic import DiskFull
+from m2s2hil.store.frame_files import dumps
+from m2s2hil.store.session import SessionCorrupt, software_version
 
 from . import models as m
 from .manager import Conflict, QueueFull, SessionManager, UnknownSession
-from .metrics import CONTENT_TYPE
+from .prometheus import CONTENT_TYPE
 from .security import BodyLimit, bearer_guard
 from .sse import session_events
 

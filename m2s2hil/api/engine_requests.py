@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from typing import Literal
 
-from m2s2hil.engine import Engine
-from m2s2hil.engine_state import IllegalTransition, RunState
+from m2s2hil.engine.runner import Engine
+from m2s2hil.engine.state import IllegalTransition, RunState
 
 Action = Literal["pause", "resume", "abort"]
 

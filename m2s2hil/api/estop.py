@@ -10,7 +10,7 @@ import logging
 import threading
 from dataclasses import dataclass
 
-from m2s2hil.rig import Rig
+from m2s2hil.rig.opened import Rig
 
 from .engine_requests import request, wait_terminal
 from .jobqueue import Job

@@ -9,8 +9,8 @@ import threading
 from dataclasses import dataclass, field
 from typing import Literal
 
-from m2s2hil.engine import Engine
-from m2s2hil.store import SessionStore
+from m2s2hil.engine.runner import Engine
+from m2s2hil.store.session import SessionStore
 
 #: A job's life in this daemon (the session's own state is in its journal and its engine).
 JobState = Literal["queued", "running", "finished", "cancelled"]

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from m2s2hil.drivers.clock import Clock
-from m2s2hil.store import SessionCorrupt, SessionNotFound, SessionStore, list_sessions
+from m2s2hil.store.session import SessionCorrupt, SessionNotFound, SessionStore, list_sessions
 
 from .errors import Conflict, UnknownSession
 from .jobqueue import Job

@@ -1,9 +1,9 @@
 """One rig, one running session, a first-in-first-out queue of the others.
 
-:class:`SessionManager` owns the opened :class:`~m2s2hil.rig.Rig` and the data root.
+:class:`SessionManager` owns the opened :class:`~m2s2hil.rig.opened.Rig` and the data root.
 ``submit(sweep)`` checks the plan against the rig, creates the session folder (state
 ``queued``) and queues it; a dispatcher thread starts the next session when the rig is
-free, one :class:`~m2s2hil.engine.Engine` at a time. The queue is visible
+free, one :class:`~m2s2hil.engine.runner.Engine` at a time. The queue is visible
 (:meth:`queue`) and cancellable (``control(id, "abort")`` on a queued session).
 
 Conflicts and what they get (the API maps these to HTTP codes):
@@ -41,12 +41,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any, Literal
 
-from m2s2hil.engine import Engine
-from m2s2hil.engine_state import EngineEvent, RunState, SessionFinished
-from m2s2hil.faults import FaultPolicy
+from m2s2hil.engine.fault_policy import FaultPolicy
+from m2s2hil.engine.runner import Engine
+from m2s2hil.engine.state import EngineEvent, RunState, SessionFinished
 from m2s2hil.plan import Sweep
-from m2s2hil.rig import Rig
-from m2s2hil.store import SessionStore, list_sessions
+from m2s2hil.rig.opened import Rig
+from m2s2hil.store.session import SessionStore, list_sessions
 
 from . import estop, listing
 from .admission import check_room, check_sweep, planned_frame_count
@@ -54,7 +54,7 @@ from .engine_requests import Action, request, wait_safe_boundary
 from .errors import Conflict, PlanTooLarge, QueueFull, UnknownSession
 from .estop import SafeCheck, make_safe
 from .jobqueue import Job, JobQueue
-from .metrics import Metrics
+from .prometheus import Metrics
 from .rigstate import device_states
 from .rootlock import LOCK_NAME, RootLocked, lock_data_root, unlock_data_root
 from .status import RESUMABLE, RESUMABLE_BY_HAND, TERMINAL, disk_status, engine_status, queued_status

@@ -9,8 +9,8 @@ import collections
 import threading
 from typing import Any
 
-from m2s2hil.engine import Engine
-from m2s2hil.rig import Rig
+from m2s2hil.engine.runner import Engine
+from m2s2hil.rig.opened import Rig
 
 
 def device_states(rig: Rig, hw: threading.Lock, engine: Engine | None) -> list[dict]:

@@ -24,7 +24,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
-from m2s2hil.engine_state import SessionFinished
+from m2s2hil.engine.state import SessionFinished
 
 from .manager import SessionManager
 

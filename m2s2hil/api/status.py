@@ -6,8 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from m2s2hil.drivers.clock import Clock
-from m2s2hil.engine import Engine
-from m2s2hil.store import SessionCorrupt
+from m2s2hil.engine.runner import Engine
+from m2s2hil.store.session import SessionCorrupt
 
 from .jobqueue import Job
 from .listing import PlannedCounts, open_store

@@ -102,8 +102,8 @@ def _print_plan(sweep, config: RigConfig) -> None:
 
 
 def _run_engine(engine, *, virtual: bool) -> int:
-    from m2s2hil.engine_state import Progress as ProgressEvent
-    from m2s2hil.engine_state import RunState
+    from m2s2hil.engine.state import Progress as ProgressEvent
+    from m2s2hil.engine.state import RunState
 
     listener = engine.listen()
     interrupts = 0
@@ -198,7 +198,7 @@ def capture(
     realtime: bool = typer.Option(False, "--realtime", help="simulated rig in real time, not virtual"),
 ) -> None:
     """Capture one satellite build under the chosen lighting conditions."""
-    from m2s2hil.store import default_data_root
+    from m2s2hil.store.session import default_data_root
 
     if mode not in ("stop-and-go", "continuous"):
         raise UsageError(f"--mode must be stop-and-go or continuous, not {mode!r}")
@@ -222,9 +222,9 @@ def capture(
     elif dry_run or sat or build or light:
         raise UsageError("--resume takes the plan from the session: drop --sat/--build/--light/--dry-run")
 
-    from m2s2hil.engine import Engine
-    from m2s2hil.rig_factory import open_rig
-    from m2s2hil.store import SessionStore
+    from m2s2hil.engine.runner import Engine
+    from m2s2hil.rig.factory import open_rig
+    from m2s2hil.store.session import SessionStore
 
     opened = open_rig(config, realtime=realtime)
     try:

@@ -11,8 +11,8 @@ from pathlib import Path
 import typer
 
 from m2s2hil.errors import UsageError
-from m2s2hil.export import LAYOUTS, export_session
-from m2s2hil.store import JOURNAL, SessionStore, default_data_root
+from m2s2hil.store.export import LAYOUTS, export_session
+from m2s2hil.store.session import JOURNAL, SessionStore, default_data_root
 
 app = typer.Typer(
     help="Export a session as the published M2S2 layout or a Hugging Face image folder.",

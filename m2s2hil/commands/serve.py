@@ -66,7 +66,7 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     from m2s2hil.api.manager import SessionManager, lock_data_root
     from m2s2hil.api.security import check_listen
     from m2s2hil.config import load_rig
-    from m2s2hil.rig_factory import open_rig
+    from m2s2hil.rig.factory import open_rig
 
     level = settings.log_level.upper()
     logging.basicConfig(level=level, stream=sys.stderr,

@@ -22,7 +22,7 @@ def list_cmd(
     root: Path | None = typer.Option(None, "--root", help="data root (default: $M2S2HIL_DATA or ./sessions)"),
 ) -> None:
     """Every session under the data root, newest first."""
-    from m2s2hil.store import default_data_root, list_sessions
+    from m2s2hil.store.session import default_data_root, list_sessions
 
     root = root or default_data_root()
     infos = list_sessions(root)
@@ -45,7 +45,7 @@ def show_cmd(
 ) -> None:
     """A session's summary (and, with --verify, its integrity check)."""
     from m2s2hil.analysis.qc import qc_summary
-    from m2s2hil.store import SessionStore, default_data_root
+    from m2s2hil.store.session import SessionStore, default_data_root
 
     store = SessionStore.open(root or default_data_root(), session)
     try:

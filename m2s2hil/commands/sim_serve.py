@@ -21,7 +21,7 @@ def serve(
     seconds: float | None = typer.Option(None, "--seconds", help="stop after this long (default: Ctrl-C)"),
 ) -> None:
     """Serve every serial device of the rig as a simulator on a pseudo-terminal."""
-    from m2s2hil.simserve import SimServer
+    from m2s2hil.rig.pty_serve import SimServer
 
     config = load_rig(rig)
     stop = threading.Event()

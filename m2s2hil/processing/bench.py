@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
+from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark
 from m2s2hil.processing.demosaic import METHODS, check_method, get_demosaicer
 from m2s2hil.processing.groundtruth import Scene, mosaic_of
-from m2s2hil.processing.metrics import Quality, evaluate
+from m2s2hil.processing.image_quality import Quality, evaluate
 from m2s2hil.processing.mosaic import MosaicLayout, cell_mean
-from m2s2hil.processing.pipeline import FrameProcessor
 
 
 @dataclass
@@ -260,7 +260,7 @@ def machine_description() -> str:
     import cv2
     import numba
 
-    from m2s2hil.machine import describe_machine
+    from m2s2hil.hostinfo import describe_machine
 
     return (
         f"{describe_machine()}; numpy {np.__version__}, OpenCV {cv2.__version__}, "

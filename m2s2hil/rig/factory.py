@@ -11,13 +11,15 @@ from __future__ import annotations
 import contextlib
 import logging
 import urllib.parse
+from types import MappingProxyType
 from typing import Any
 
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import AxisConfig, DeviceConfig, RigConfig, default_rig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.errors import ConfigError
-from m2s2hil.rig import Rig
+from m2s2hil.drivers.interfaces import ContinuousRotation
+from m2s2hil.rig.opened import AXIS_ROLES, DeviceLink, Rig, link_for
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +48,7 @@ def build_simulators(
     """
     import m2s2hil.simulators  # noqa: F401  (registers sim:// with pyserial)
     from m2s2hil.simulators import registry
-    from m2s2hil.simulators.faults import FaultPlan
+    from m2s2hil.simulators.fault_injection import FaultPlan
     from m2s2hil.simulators.world import LampInfo, World
 
     sim_cfg = dict(config.simulation)
@@ -235,6 +237,7 @@ def open_rig(
         controllers: dict[str, Any] = {}
         axes: dict[str, Any] = {}
         lights = None
+        links: list[DeviceLink] = []  # each connection's capabilities, checked here once
         for name, dev in config.devices.items():
             if dev.protocol in ("grbl", "zaber"):
                 if not _axes_of(config, name):
@@ -243,9 +246,12 @@ def open_rig(
                 opened.append(ctl)
                 controllers[name] = ctl
                 axes.update(got)
+                roles = tuple(r for r in AXIS_ROLES if r in got)
+                links.append(link_for(name, roles, ctl, *(str(a.name) for a in got.values())))
             else:
                 lights = _open_lights(name, dev, clock)
                 opened.append(lights)
+                links.append(link_for(name, ("lights",), lights, lights.name))
         cam_cfg = config.camera
         cam_reg = _sim_name(cam_cfg.port)
         if cam_reg is not None:
@@ -262,6 +268,7 @@ def open_rig(
                 clock=clock, timeout_s=cam_cfg.timeout_s, name="camera",
             )
         opened.append(camera)
+        links.append(link_for(camera.name, ("camera",), camera))
         if home:
             for ctl in controllers.values():
                 ctl.home()
@@ -276,9 +283,12 @@ def open_rig(
             tilt=axes["tilt"],
             lights=lights,
             camera=camera,
+            links=tuple(links),
+            rotation=axes["turntable"] if isinstance(axes["turntable"], ContinuousRotation) else None,
             world=world,
             simulated=all_sim,
-            extras={"sims": sims, "frame_source": frame_source, "controllers": controllers},
+            sims=MappingProxyType(sims),
+            frame_source=frame_source,
             calibration=calibration,
         )
         rig.lights.set(())
@@ -295,7 +305,7 @@ def _mirror_into_world(
 ) -> tuple[dict[str, Any], Any]:
     """A local simulated camera with non-simulated motion or relays: wrap those drivers so
     the camera's world follows what they read back. Returns the (possibly wrapped) devices."""
-    from m2s2hil.mirror import MirroredAxis, MirroredLights
+    from m2s2hil.rig.mirror import MirroredAxis, MirroredLights
 
     out = dict(axes)
     for role, ax in axes.items():

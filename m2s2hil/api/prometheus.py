@@ -21,8 +21,8 @@ import math
 import threading
 from collections.abc import Callable
 
-from m2s2hil.engine_state import EngineEvent, FaultRecorded, FrameStored, SessionFinished
-from m2s2hil.faults import FAULT_CLASSES
+from m2s2hil.engine.fault_policy import FAULT_CLASSES
+from m2s2hil.engine.state import EngineEvent, FaultRecorded, FrameStored, SessionFinished
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 DURATION_BUCKETS = (10.0, 60.0, 300.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)

@@ -2,7 +2,7 @@
 
 Layout of ``<root>/<session_id>/``::
 
-    journal.sqlite            the journal (see m2s2hil.journal); the source of truth
+    journal.sqlite            the journal (see m2s2hil.store.journal); the source of truth
     sweep.json, rig.json      human-readable copies of the plan and the rig
     frames/<event>.raw.tiff   raw mosaic, uint16, metadata JSON in ImageDescription
     frames/<event>.cube.tiff  processed cube (bands, H, W), float32 or uint16
@@ -13,7 +13,7 @@ Layout of ``<root>/<session_id>/``::
 ``<event>`` is the event id with ``/`` replaced by ``_`` (``weak_E0_az010_f0``).
 
 Integrity: every file goes to a temporary name in its folder, is fsynced, renamed, and
-the folder fsynced (m2s2hil.atomic); its sha256 goes into the journal. The frame's
+the folder fsynced (m2s2hil.store.atomic); its sha256 goes into the journal. The frame's
 journal row is committed LAST, so a crash leaves at worst files without a row (a resumed
 run overwrites them) and never a row without its files. An event id is written once:
 writing it again raises :class:`DuplicateEvent`.
@@ -42,7 +42,11 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from m2s2hil.atomic import (
+from m2s2hil.config import RigConfig, parse_rig
+from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
+from m2s2hil.errors import ConfigError, M2S2Error, UsageError
+from m2s2hil.plan import CaptureEvent, PlanError, Sweep, parse_sweep
+from m2s2hil.store.atomic import (
     DEFAULT_RESERVE_BYTES,
     DiskFull,
     check_free_space,
@@ -53,10 +57,7 @@ from m2s2hil.atomic import (
     write_files_atomic,
     write_text_atomic,
 )
-from m2s2hil.config import RigConfig, parse_rig
-from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
-from m2s2hil.errors import ConfigError, M2S2Error, UsageError
-from m2s2hil.frame_files import (
+from m2s2hil.store.frame_files import (
     InvalidImage,
     decode_tiff,
     dumps,
@@ -66,8 +67,7 @@ from m2s2hil.frame_files import (
     encode_raw,
     encode_tiff,
 )
-from m2s2hil.journal import DuplicateEvent, Journal, JournalError
-from m2s2hil.plan import CaptureEvent, PlanError, Sweep, parse_sweep
+from m2s2hil.store.journal import DuplicateEvent, Journal, JournalError
 
 __all__ = [
     "DarkRecord", "DiskFull", "DuplicateEvent", "FileRecord", "FrameRecord", "InvalidImage", "Problem",

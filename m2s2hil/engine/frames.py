@@ -1,7 +1,7 @@
 """What happens to a frame after the snap: its metadata, the processing and storage stages.
 
 The engine thread builds each frame's metadata (:meth:`FrameStages.meta`) and the simulator's
-truth, then hands a :class:`CapturedFrame` to the :class:`~m2s2hil.pipeline.Pipeline`, whose
+truth, then hands a :class:`CapturedFrame` to the :class:`~m2s2hil.engine.pipeline.Pipeline`, whose
 threads run :meth:`FrameStages.process` (dark subtraction + demosaicing with
 ``processing.pipeline.FrameProcessor``, one per master dark; then the QC hook; then an RGB
 preview) and :meth:`FrameStages.write` (``store.write_frame``).
@@ -34,11 +34,11 @@ from typing import Any
 
 import numpy as np
 
-from m2s2hil.engine_darks import Dark
+from m2s2hil.engine.darks import Dark
 from m2s2hil.plan import CaptureEvent, Sweep
-from m2s2hil.rig import Rig
-from m2s2hil.rig_ops import RigOps
-from m2s2hil.store import SessionStore
+from m2s2hil.rig.opened import Rig
+from m2s2hil.rig.operations import RigOps
+from m2s2hil.store.session import SessionStore
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class FrameStages:
         if proc is None:
             factory = self.processor_factory
             if factory is None:
-                from m2s2hil.processing.pipeline import FrameProcessor as factory
+                from m2s2hil.processing.chain import FrameProcessor as factory
             kw: dict[str, Any] = {"dark": dark.master if dark is not None else None}
             if self.rig.calibration is not None:  # crosstalk, white reference, real layout
                 kw["calibration"] = self.rig.calibration

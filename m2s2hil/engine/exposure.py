@@ -5,7 +5,7 @@ timeout of the exposure plus ``snap_timeout_s``; after a fault or a pause the en
 :meth:`CameraControl.forget` so the next capture re-commands the setting.
 
 :class:`AutoExposure` meters once per lighting condition when the sweep asks for it
-(:func:`m2s2hil.autoexposure.find_exposure`), records the result as a journal event
+(:func:`m2s2hil.engine.exposure_search.find_exposure`), records the result as a journal event
 ``auto_exposure`` and reuses it for every later frame of that condition; a resumed session
 restores the results from the journal instead of metering again.
 """
@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from m2s2hil.autoexposure import ExposureResult, find_exposure
 from m2s2hil.config import CameraModel
+from m2s2hil.engine.exposure_search import ExposureResult, find_exposure
 from m2s2hil.plan import CaptureEvent, Sweep
-from m2s2hil.rig import Rig
-from m2s2hil.store import SessionStore
+from m2s2hil.rig.opened import Rig
+from m2s2hil.store.session import SessionStore
 
 log = logging.getLogger(__name__)
 

@@ -23,6 +23,11 @@ class MirroredAxis:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._axis, name)
 
+    @property
+    def wrapped(self) -> Any:
+        """The real driver (to change its state: attribute writes stay on the proxy)."""
+        return self._axis
+
     def move_to(self, degrees: float, *, wait: bool = True) -> float:
         got = self._axis.move_to(degrees, wait=wait)
         self._last = got if wait else self._axis.position()

@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from m2s2hil.engine_exposure import CameraControl
+from m2s2hil.engine.exposure import CameraControl
 from m2s2hil.plan import CaptureEvent, Sweep, dark_event, dark_event_id
-from m2s2hil.rig import Rig
-from m2s2hil.rig_ops import RigOps
-from m2s2hil.store import DarkRecord, SessionStore
+from m2s2hil.rig.opened import Rig
+from m2s2hil.rig.operations import RigOps
+from m2s2hil.store.session import DarkRecord, SessionStore
 
 log = logging.getLogger(__name__)
 

@@ -19,14 +19,14 @@ from __future__ import annotations
 import contextlib
 import logging
 from dataclasses import dataclass, field
-from typing import Any
 
 from m2s2hil.drivers.errors import MoveNotVerified
-from m2s2hil.rig import Rig
+from m2s2hil.drivers.interfaces import RestartReport, RotaryAxis
+from m2s2hil.rig.opened import AXIS_ROLES, DeviceLink, Rig, Role
 
 log = logging.getLogger(__name__)
 
-ROLES = ("turntable", "tilt")
+ROLES = AXIS_ROLES
 
 
 @dataclass
@@ -49,8 +49,8 @@ class RigOps:
         self.lens_capped = False
 
     # -- state -----------------------------------------------------------------------
-    def axis(self, role: str) -> Any:
-        return self.rig.turntable if role == "turntable" else self.rig.tilt
+    def axis(self, role: Role) -> RotaryAxis:
+        return self.rig.axis(role)
 
     def pose(self) -> dict[str, float | None]:
         return dict(self._pose)
@@ -99,7 +99,7 @@ class RigOps:
         self._lit = frozenset()
 
     # -- motion ----------------------------------------------------------------------
-    def move(self, role: str, target: float) -> bool:
+    def move(self, role: Role, target: float) -> bool:
         """Move one axis to ``target`` and verify the read-back; False if it was there."""
         tol = self.rig.config.axes[role].tolerance_deg
         cur = self._pose[role]
@@ -110,19 +110,19 @@ class RigOps:
         if abs(actual - target) > tol:
             raise MoveNotVerified(
                 f"read back {actual:.4f} deg after moving to {target:.4f} deg (tolerance {tol} deg)",
-                target=target, actual=actual, device=getattr(self.axis(role), "name", role),
+                target=target, actual=actual, device=self.axis(role).name,
                 command=f"move {role} {target}",
             )
         self._pose[role] = actual
         self._moved_at = self.clock.monotonic()
         return True
 
-    def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[str]:
+    def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[Role]:
         """Tilt first (it changes rarely), then the turntable; returns the axes moved."""
-        moved = [r for r, t in (("tilt", tilt_deg), ("turntable", azimuth_deg)) if self.move(r, t)]
-        return moved
+        order: tuple[tuple[Role, float], ...] = (("tilt", tilt_deg), ("turntable", azimuth_deg))
+        return [r for r, t in order if self.move(r, t)]
 
-    def settle_s(self, moved: list[str], override: float | None) -> float:
+    def settle_s(self, moved: list[Role], override: float | None) -> float:
         if not moved:
             return 0.0
         if override is not None:
@@ -139,78 +139,52 @@ class RigOps:
         return 0.0
 
     # -- recovery --------------------------------------------------------------------
-    def devices_named(self, device: str | None) -> list[tuple[str, Any]]:
-        """The rig objects an error's ``device`` names (the stage serves both axes)."""
-        cfg = self.rig.config
-        config_names = {
-            "turntable": cfg.axes["turntable"].device,
-            "tilt": cfg.axes["tilt"].device,
-            "lights": cfg.relay_device if cfg.lamps else None,
-        }
-        found = []
-        for role, dev in (("turntable", self.rig.turntable), ("tilt", self.rig.tilt),
-                          ("lights", self.rig.lights), ("camera", self.rig.camera)):
-            names = {getattr(dev, "name", None), role, config_names.get(role),
-                     getattr(self._controller(dev), "device", None)}
-            if device is not None and device in names:
-                found.append((role, dev))
-        return found
+    def links_named(self, device: str | None) -> list[DeviceLink]:
+        """The connections an error's ``device`` names (one stage controller serves both axes)."""
+        return [link for link in self.rig.links if link.means(device)]
 
-    @staticmethod
-    def _controller(dev: Any) -> Any:
-        """The object that owns the connection (a GRBL axis shares its controller)."""
-        return getattr(dev, "ctl", None) or getattr(dev, "controller", None) or dev
+    def roles_named(self, device: str | None) -> set[Role]:
+        return {r for link in self.links_named(device) for r in link.roles}
 
-    def reconnect(self, device: str | None) -> list[str]:
+    def reconnect(self, device: str | None) -> list[Role]:
         """Reconnect the devices behind ``device`` (all of them if unknown).
 
         A motion controller that restarted while it was away has lost its position:
         its axes are homed again.
         """
-        targets = self.devices_named(device) or [
-            ("turntable", self.rig.turntable), ("tilt", self.rig.tilt),
-            ("lights", self.rig.lights), ("camera", self.rig.camera),
-        ]
-        done: list[str] = []
-        seen: set[int] = set()
-        rehome: list[str] = []
-        for role, dev in targets:
-            owner = self._controller(dev)
-            if id(owner) in seen:
+        targets = self.links_named(device) or list(self.rig.links)
+        done: list[Role] = []
+        rehome: list[DeviceLink] = []
+        for link in targets:
+            if link.reconnect is None:
                 continue
-            seen.add(id(owner))
-            fn = getattr(owner, "reconnect", None) or getattr(owner, "connect", None)
-            if fn is None:
-                continue
-            report = fn()
-            done.append(role)
-            if role in ROLES and getattr(report, "reset", False):
-                rehome.append(role)
+            report = link.do_reconnect()
+            done.extend(link.roles)
+            if isinstance(report, RestartReport) and report.reset and set(link.roles) & set(AXIS_ROLES):
+                rehome.append(link)
         self.invalidate()
         if rehome:
-            self.home(getattr(self.axis(rehome[0]), "name", rehome[0]))
+            self.home(rehome[0].device)
         return done
 
-    def home(self, device: str | None) -> list[str]:
+    def home(self, device: str | None) -> list[Role]:
         """Clear an alarm and home the axes behind ``device`` (both if it is not an axis).
 
-        A controller that offers ``clear_alarm(home=True)`` (GRBL: soft reset, then
-        ``$H``) gets that, once; otherwise each axis's ``home()``.
+        A controller that can clear its alarm (GRBL: soft reset, then ``$H``) does that,
+        once; otherwise each of its axes is homed.
         """
-        named = [r for r, _ in self.devices_named(device) if r in ROLES]
-        roles = named or list(ROLES)
-        seen: set[int] = set()
-        for r in roles:
-            ax = self.axis(r)
-            owner = self._controller(ax)
-            if id(owner) in seen:
-                continue
-            seen.add(id(owner))
-            clear = getattr(owner, "clear_alarm", None)
-            if clear is not None and owner is not ax:
-                clear(home=True)
+        links = [link for link in self.links_named(device) if set(link.roles) & set(AXIS_ROLES)]
+        if not links:
+            links = [link for link in self.rig.links if set(link.roles) & set(AXIS_ROLES)]
+        roles: list[Role] = []
+        for link in links:
+            axis_roles = [r for r in link.roles if r in AXIS_ROLES]
+            roles.extend(axis_roles)
+            if link.alarm is not None:
+                link.alarm.clear_alarm(home=True)
             else:
-                ax.home()
+                for r in axis_roles:
+                    self.rig.axis(r).home()
         # Homing may move every axis on the controller: trust no remembered position.
         self._pose = dict.fromkeys(ROLES)
         return roles

@@ -40,11 +40,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-from m2s2hil.atomic import write_bytes_atomic, write_text_atomic
 from m2s2hil.catalog import load_catalog
 from m2s2hil.errors import UsageError
-from m2s2hil.frame_files import decode_tiff, encode_png
-from m2s2hil.store import FrameRecord, SessionStore
+from m2s2hil.store.atomic import write_bytes_atomic, write_text_atomic
+from m2s2hil.store.frame_files import decode_tiff, encode_png
+from m2s2hil.store.session import FrameRecord, SessionStore
 
 Layout = Literal["m2s2", "hf"]
 LAYOUTS = ("m2s2", "hf")

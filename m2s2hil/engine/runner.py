@@ -1,5 +1,5 @@
-"""The capture engine: runs a :class:`~m2s2hil.plan.Sweep` on a :class:`~m2s2hil.rig.Rig`
-into a :class:`~m2s2hil.store.SessionStore`.
+"""The capture engine: runs a :class:`~m2s2hil.plan.Sweep` on a :class:`~m2s2hil.rig.opened.Rig`
+into a :class:`~m2s2hil.store.session.SessionStore`.
 
 Use::
 
@@ -15,10 +15,10 @@ Use::
 
     engine = Engine.resume_session(rig, root, session_id)   # after a crash: skips what is stored
 
-Constructor options: ``policy`` (:class:`~m2s2hil.faults.FaultPolicy`), ``on_event``
+Constructor options: ``policy`` (:class:`~m2s2hil.engine.fault_policy.FaultPolicy`), ``on_event``
 (a subscriber from the start), ``qc`` (the capture-time QC hook, see
-:mod:`m2s2hil.engine_frames`), ``process_depth``/``store_depth`` (queue bounds),
-``store_workers`` (parallel writers), continuous mode (:mod:`m2s2hil.engine_continuous`):
+:mod:`m2s2hil.engine.frames`), ``process_depth``/``store_depth`` (queue bounds),
+``store_workers`` (parallel writers), continuous mode (:mod:`m2s2hil.engine.continuous_steps`):
 ``speed_dps`` (override) or ``max_blur_px`` (ω limited so ω·t_exp stays under it at
 ``radius_px`` from the axis; default: the plan's ω), ``max_angle_error_deg``;
 ``retry_skipped`` (a resumed run retries earlier gaps), ``check_disk``, ``save_truth``,
@@ -27,24 +27,24 @@ Constructor options: ``policy`` (:class:`~m2s2hil.faults.FaultPolicy`), ``on_eve
 Control: ``pause``/``abort`` are honoured at the next safe boundary (between captures; in
 continuous mode between frames, stopping the turntable); ``resume``/``clear`` continue a
 pause or a suspension. Illegal requests (e.g. ``resume`` while running, anything after the
-end) raise :class:`~m2s2hil.engine_state.IllegalTransition` (a ``UsageError``: HTTP 409).
+end) raise :class:`~m2s2hil.engine.state.IllegalTransition` (a ``UsageError``: HTTP 409).
 Final states: ``completed`` (gaps allowed, each recorded), ``aborted``, ``failed``.
 
 What a run does, in the plan's order (``sweep.expand(rig.config)``):
 
-- *dark* events: master darks (:mod:`m2s2hil.engine_darks`: capture, reuse, retake on
+- *dark* events: master darks (:mod:`m2s2hil.engine.darks`: capture, reuse, retake on
   temperature drift).
 - *frame* events, stop-and-go: lamps of the condition on (only when they change), tilt then
   turntable moved and verified against the read-back within the axis tolerance, settle and
   lamp warm-up waited (the warm-up overlaps the move), the exposure
-  (:mod:`m2s2hil.engine_exposure`: automatic once per lighting condition when the sweep
+  (:mod:`m2s2hil.engine.exposure`: automatic once per lighting condition when the sweep
   asks for it), one snap, then the frame goes down the pipeline.
-- continuous mode: one pass per lighting and tilt (:mod:`m2s2hil.engine_continuous`).
-- pipeline (:mod:`m2s2hil.pipeline`): processing and storage (:mod:`m2s2hil.engine_frames`,
+- continuous mode: one pass per lighting and tilt (:mod:`m2s2hil.engine.continuous_steps`).
+- pipeline (:mod:`m2s2hil.engine.pipeline`): processing and storage (:mod:`m2s2hil.engine.frames`,
   which also lists the frame metadata) run in their own threads behind bounded queues;
   results come back to the engine thread at safe boundaries.
 
-Faults go through the :class:`~m2s2hil.faults.FaultPolicy`; every fault is recorded
+Faults go through the :class:`~m2s2hil.engine.fault_policy.FaultPolicy`; every fault is recorded
 (status, event bus, journal event ``fault``) and every capture given up is recorded with
 ``store.record_skip`` and its reason. Pause and abort are honoured between captures. Every
 exit path (completion, abort, failure, Ctrl-C, even a failing teardown step) ends with lamps
@@ -64,12 +64,13 @@ from typing import Any
 
 import numpy as np
 
-from m2s2hil.atomic import check_free_space
-from m2s2hil.engine_continuous import PassCapture, SpeedSettings
-from m2s2hil.engine_darks import Dark, SessionDarks
-from m2s2hil.engine_exposure import AutoExposure, CameraControl
-from m2s2hil.engine_frames import CapturedFrame, FrameStages, QcHook, qc_number
-from m2s2hil.engine_state import (
+from m2s2hil.engine.continuous_steps import PassCapture, SpeedSettings
+from m2s2hil.engine.darks import Dark, SessionDarks
+from m2s2hil.engine.exposure import AutoExposure, CameraControl
+from m2s2hil.engine.fault_policy import FaultPolicy, fault_class_of
+from m2s2hil.engine.frames import CapturedFrame, FrameStages, QcHook, qc_number
+from m2s2hil.engine.pipeline import Pipeline, PipelineStats
+from m2s2hil.engine.state import (
     Captured,
     EngineEvent,
     EngineStatus,
@@ -86,12 +87,11 @@ from m2s2hil.engine_state import (
     check_transition,
 )
 from m2s2hil.errors import M2S2Error, UsageError
-from m2s2hil.faults import FaultPolicy, fault_class_of
-from m2s2hil.pipeline import Pipeline, PipelineStats
 from m2s2hil.plan import CaptureEvent, Sweep, estimate
-from m2s2hil.rig import Rig
-from m2s2hil.rig_ops import RigOps
-from m2s2hil.store import SessionStore, estimate_session_bytes, software_version
+from m2s2hil.rig.opened import Rig
+from m2s2hil.rig.operations import RigOps
+from m2s2hil.store.atomic import check_free_space
+from m2s2hil.store.session import SessionStore, estimate_session_bytes, software_version
 
 log = logging.getLogger(__name__)
 
@@ -870,7 +870,7 @@ class Engine:
 def interrupted_sessions(root: str | Path) -> list[str]:
     """Sessions under ``root`` that a restarted daemon should resume: their journal says they
     were running or paused when the process ended (oldest first)."""
-    from m2s2hil.store import list_sessions
+    from m2s2hil.store.session import list_sessions
 
     found = [s for s in list_sessions(root) if s.state in ("running", "paused")]
     return [s.session_id for s in sorted(found, key=lambda s: s.created or 0.0)]

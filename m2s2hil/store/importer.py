@@ -34,14 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from m2s2hil.atomic import fsync_dir
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.errors import CatalogError, UsageError
-from m2s2hil.frame_files import InvalidImage, decode_png
 from m2s2hil.plan import DarkPolicy, Sweep, frame_event_id
-from m2s2hil.store import SessionStore
+from m2s2hil.store.atomic import fsync_dir
+from m2s2hil.store.frame_files import InvalidImage, decode_png
+from m2s2hil.store.session import SessionStore
 
 RAW_EXTENSIONS = frozenset({
     ".dng", ".nef", ".nrw", ".cr2", ".cr3", ".crw", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2",

@@ -26,9 +26,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from m2s2hil.atomic import DiskFull
 from m2s2hil.errors import M2S2Error
-from m2s2hil.frame_files import dumps
+from m2s2hil.store.atomic import DiskFull
+from m2s2hil.store.frame_files import dumps
 
 SCHEMA_VERSION = 1
 

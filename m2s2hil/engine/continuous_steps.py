@@ -3,7 +3,7 @@
 Per pass the lamps of the condition go on and the tilt moves; with auto exposure the
 condition is metered at the pass's first mark; then the turntable turns at ω while the
 camera streams, and the frame nearest each azimuth mark (by timestamp and read-back) is
-kept (the matching is :func:`m2s2hil.continuous.run_pass`). Blur ω·t_exp is recorded per
+kept (the matching is :func:`m2s2hil.engine.marks.run_pass`). Blur ω·t_exp is recorded per
 frame (``meta["continuous"]``) and per pass (journal event ``continuous_pass``).
 
 ω is the engine's ``speed_dps`` if set, otherwise the plan's ω per condition
@@ -22,17 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from m2s2hil.autoexposure import ExposureResult
 from m2s2hil.config import RigConfig
-from m2s2hil.continuous import PassReport, blur_estimate, run_pass
 from m2s2hil.drivers.errors import FrameIncomplete
-from m2s2hil.engine_darks import Dark, SessionDarks
-from m2s2hil.engine_exposure import AutoExposure, CameraControl
-from m2s2hil.engine_frames import FrameStages
+from m2s2hil.engine.darks import Dark, SessionDarks
+from m2s2hil.engine.exposure import AutoExposure, CameraControl
+from m2s2hil.engine.exposure_search import ExposureResult
+from m2s2hil.engine.frames import FrameStages
+from m2s2hil.engine.marks import PassReport, blur_estimate, run_pass
 from m2s2hil.plan import CaptureEvent, ContinuousEstimate, Sweep, estimate_continuous
-from m2s2hil.rig import Rig
-from m2s2hil.rig_ops import RigOps
-from m2s2hil.store import SessionStore
+from m2s2hil.rig.opened import Rig
+from m2s2hil.rig.operations import RigOps
+from m2s2hil.store.session import SessionStore
 
 Submit = Callable[[CaptureEvent, np.ndarray, dict, Dark | None, Any], None]
 

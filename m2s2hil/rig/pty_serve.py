@@ -12,7 +12,7 @@ from typing import Any
 import tomli_w
 
 from m2s2hil.config import RigConfig, load_rig
-from m2s2hil.rig_factory import build_simulators
+from m2s2hil.rig.factory import build_simulators
 
 
 @dataclass

@@ -1,0 +1,118 @@
+"""Request and response bodies of the operator console's endpoints (manual control, live view,
+snapshots, calibration, plan estimates)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Degrees = Annotated[float, Field(ge=-3600.0, le=3600.0, allow_inf_nan=False)]
+Exposure = Annotated[float, Field(gt=0.0, le=60.0, allow_inf_nan=False)]
+Gain = Annotated[float, Field(ge=0.0, le=64.0, allow_inf_nan=False)]
+Note = Annotated[str, Field(max_length=200)]
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Jog(_In):
+    delta_deg: Annotated[float, Field(ge=-720.0, le=720.0, allow_inf_nan=False)]
+
+
+class GoTo(_In):
+    position_deg: Degrees
+
+
+class Lamps(_In):
+    """Either a lighting preset (``null``: every lamp off) or the lamps to have on."""
+
+    preset: str | None = Field(default=None, max_length=64)
+    lamps: list[Annotated[str, Field(max_length=64)]] | None = Field(default=None, max_length=64)
+
+
+class AxisOut(BaseModel):
+    role: str
+    position_deg: float | None
+    moving: bool | None
+    min_deg: float
+    max_deg: float
+    max_speed_dps: float
+    homing: str
+    can_home: bool
+    error: str | None = None
+
+
+class AxesOut(BaseModel):
+    owner: str | None = Field(description="The session that owns the rig (manual control refused), or null.")
+    axes: list[AxisOut]
+    lamps_on: list[str] | None
+    lamps: dict[str, str] = Field(description="Every lamp and its kind.")
+    presets: dict[str, list[str]]
+
+
+class MoveOut(BaseModel):
+    axis: str
+    target_deg: float
+    position_deg: float
+    moving: bool
+
+
+class LampsOut(BaseModel):
+    lamps_on: list[str]
+
+
+class LiveSettingsIn(_In):
+    exposure_s: Exposure | None = None
+    gain: Gain | None = None
+    view: Literal["rgb"] | Annotated[int, Field(ge=0, le=63)] | None = None
+    axis_x: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
+
+
+class LiveOut(BaseModel):
+    settings: dict[str, Any]
+    viewers: int
+    frames_produced: int
+    error: str | None
+    stats: dict[str, Any] | None
+    bands_nm: list[float]
+
+
+class SnapshotIn(_In):
+    note: Note = ""
+    exposure_s: Exposure | None = None
+    gain: Gain | None = None
+
+
+class DarksIn(_In):
+    """The (exposure, gain) pairs to take darks at: given, or those a plan uses."""
+
+    exposures: list[tuple[Exposure, Gain]] | None = Field(default=None, max_length=32)
+    plan: dict[str, Any] | None = Field(default=None, description="A session plan (as POST /sessions takes).")
+    n_frames: Annotated[int, Field(ge=1, le=64)] | None = None
+    lens_capped: bool = Field(False, description="The operator confirms the lens cap is on (a real rig).")
+
+
+class WhiteIn(_In):
+    exposure_s: Exposure
+    gain: Gain = 1.0
+    n_frames: Annotated[int, Field(ge=1, le=64)] = 8
+    reflectance: Annotated[float, Field(gt=0.0, le=1.5)] = 0.99
+    lighting: str | None = Field(default=None, max_length=64)
+    panel_in_place: bool = Field(False, description="The operator confirms the white panel fills the view.")
+
+
+class PhaseIn(_In):
+    exposure_s: Exposure
+    gain: Gain = 1.0
+
+
+class EstimateOut(BaseModel):
+    events: int
+    frames: int
+    darks: int
+    estimate_s: float
+    lower_bound_s: float
+    bytes: int
+    breakdown: dict[str, float]

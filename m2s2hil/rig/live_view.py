@@ -1,0 +1,257 @@
+"""Live view for setting a rig up: what the camera sees, downsampled, with the numbers that matter.
+
+A frame becomes a :class:`LiveFrame`: a JPEG of the super-pixel cube (one value per mosaic
+cell, so a 2048² sensor gives 512², cheap and free of demosaicing artefacts) shown as a
+white-balanced false-colour image or as one band, plus the statistics the operator sets
+exposure and focus by: a histogram of the raw values, the saturated fraction, a focus measure
+(variance of the Laplacian of the brightest band, larger is sharper) and the frame's exposure,
+gain and timestamps.
+
+:class:`LiveStream` runs one producer thread while at least one viewer is connected, so any
+number of browsers share one camera conversation; each viewer gets the newest frame when it is
+ready for one (a slow viewer skips frames instead of queueing them). Each grab goes through
+``grab`` (a callable the daemon wraps with its device lock and its session check), so the live
+view never talks to the camera while a session owns it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from m2s2hil.config import CameraModel
+from m2s2hil.drivers.interfaces import Frame
+from m2s2hil.processing.demosaic import Demosaicer, get_demosaicer
+from m2s2hil.processing.display import false_colour, srgb_encode
+
+HIST_BINS = 64
+JPEG_QUALITY = 80
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    exposure_s: float = 0.01
+    gain: float = 1.0
+    #: "rgb" for the white-balanced false-colour view, or a band index (0-based).
+    view: str | int = "rgb"
+    #: Where the turntable's axis crosses the image, as a fraction of the width (overlay only).
+    axis_x: float = 0.5
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    seq: int
+    jpeg: bytes
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+class LiveRenderer:
+    """Raw mosaic → :class:`LiveFrame` (JPEG + statistics); buffers kept between frames."""
+
+    def __init__(self, model: CameraModel) -> None:
+        self.model = model
+        self._demosaic: Demosaicer = get_demosaicer("superpixel", model, (model.height, model.width))
+
+    def render(self, frame: Frame, settings: LiveSettings, seq: int,
+               grabbed_at: float | None = None) -> LiveFrame:
+        """``grabbed_at``: wall time the frame reached the host (default: now)."""
+        t0 = time.perf_counter()
+        grabbed_at = time.time() if grabbed_at is None else grabbed_at
+        raw = frame.data
+        full = self.model.full_scale
+        cube = self._demosaic.process(raw)  # (bands, h/n, w/n) float32
+        if settings.view == "rgb":
+            img = false_colour(cube, self.model.bands_nm)
+        else:
+            band = cube[int(settings.view)]
+            img8 = srgb_encode(np.clip(band / full, 0.0, 1.0))
+            img = np.repeat(img8[..., None], 3, axis=2)
+        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img[..., ::-1]),
+                               [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:  # pragma: no cover - OpenCV encodes any uint8 image
+            raise RuntimeError("JPEG encoding failed")
+        # One bincount over every 4th pixel gives the histogram, the saturated fraction and the
+        # 99.9th percentile (np.percentile would sort a million values per frame).
+        counts = np.bincount(raw[::2, ::2].ravel(), minlength=full + 1)[: full + 1]
+        n = int(counts.sum())
+        edges = np.linspace(0, full + 1, HIST_BINS + 1).astype(int)
+        hist = np.add.reduceat(counts, edges[:-1])
+        p999 = float(np.searchsorted(np.cumsum(counts), 0.999 * n))
+        brightest = int(np.argmax(cube.reshape(cube.shape[0], -1).mean(axis=1)))
+        focus = float(cv2.Laplacian(cube[brightest] / max(full, 1), cv2.CV_32F).var())
+        stats = {
+            "seq": seq,
+            "block_id": int(frame.block_id),
+            "exposure_s": float(frame.exposure_s),
+            "gain": float(frame.gain),
+            "temperature_c": float(frame.temperature_c),
+            "width": int(img.shape[1]),
+            "height": int(img.shape[0]),
+            "sensor": [int(raw.shape[1]), int(raw.shape[0])],
+            "view": settings.view,
+            "axis_x": settings.axis_x,
+            "histogram": hist.astype(int).tolist(),
+            "full_scale": full,
+            "saturated_fraction": float(counts[full] / max(n, 1)),
+            "p999": p999,
+            "focus": focus,
+            "focus_band_nm": float(self.model.bands_nm[brightest]),
+            "captured_at": grabbed_at,  # the frame in host memory (the live view's latency starts here)
+            "render_ms": round(1e3 * (time.perf_counter() - t0), 2),
+        }
+        return LiveFrame(seq, buf.tobytes(), stats)
+
+
+class LiveViewBusy(RuntimeError):
+    """The camera cannot be used for live view now (a session owns the rig)."""
+
+
+class LiveStream:
+    """One producer thread shared by every viewer (see the module docstring).
+
+    ``grab(settings)`` snaps one frame (the caller's locking and ownership checks inside);
+    it raises :class:`LiveViewBusy` when the camera is not available.
+    """
+
+    def __init__(self, model: CameraModel, grab: Callable[[LiveSettings], Frame], *,
+                 idle_stop_s: float = 2.0, max_fps: float = 30.0,
+                 on_idle: Callable[[], None] | None = None) -> None:
+        self.renderer = LiveRenderer(model)
+        self.grab = grab
+        self.idle_stop_s = idle_stop_s
+        self.on_idle = on_idle  # called when the producer stops (no viewer left)
+        # A cap on the grab rate: a faster camera (or a simulated one on a virtual clock) would
+        # otherwise take the rig's device lock back-to-back and starve jogs and session starts.
+        self.min_interval_s = 1.0 / max_fps
+        self._settings = LiveSettings()
+        self._cond = threading.Condition()
+        self._latest: LiveFrame | None = None
+        self._error: str | None = None
+        self._viewers = 0
+        self._last_viewer = 0.0
+        self._thread: threading.Thread | None = None
+        self._seq = 0
+        self._generation = 0  # bumped by every settings change
+        self.frames_produced = 0
+
+    # -- settings ----------------------------------------------------------------------------
+    @property
+    def settings(self) -> LiveSettings:
+        with self._cond:
+            return self._settings
+
+    def update(self, **changes: Any) -> LiveSettings:
+        """New settings; a frame grabbed with the old ones is not shown after this returns."""
+        with self._cond:
+            self._settings = replace(self._settings, **{k: v for k, v in changes.items() if v is not None})
+            self._generation += 1
+            self._latest = None
+            return self._settings
+
+    @property
+    def error(self) -> str | None:
+        return self._error
+
+    @property
+    def viewers(self) -> int:
+        return self._viewers
+
+    # -- producing ---------------------------------------------------------------------------
+    def _ensure_running(self) -> None:
+        if self._thread is None or not self._thread.is_alive():
+            self._thread = threading.Thread(target=self._produce, name="live-view", daemon=True)
+            self._thread.start()
+
+    def _produce(self) -> None:
+        next_at = 0.0
+        while True:
+            wait = next_at - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            next_at = time.monotonic() + self.min_interval_s
+            with self._cond:
+                if self._viewers == 0 and time.monotonic() - self._last_viewer > self.idle_stop_s:
+                    self._thread = None
+                    stopping = True
+                else:
+                    stopping = False
+            if stopping:
+                if self.on_idle is not None:
+                    self.on_idle()
+                return
+            with self._cond:
+                settings = self._settings
+                generation = self._generation
+            try:
+                frame = self.grab(settings)
+                grabbed_at = time.time()
+            except LiveViewBusy as exc:
+                with self._cond:
+                    self._error = str(exc)
+                    self._cond.notify_all()
+                time.sleep(0.25)
+                continue
+            except Exception as exc:  # a device error: shown to the viewers, retried
+                with self._cond:
+                    self._error = f"{type(exc).__name__}: {exc}"
+                    self._cond.notify_all()
+                time.sleep(0.5)
+                continue
+            with self._cond:
+                if generation != self._generation:
+                    continue  # grabbed with settings that changed meanwhile
+                self._seq += 1
+                seq = self._seq
+            live = self.renderer.render(frame, settings, seq, grabbed_at)
+            with self._cond:
+                if generation != self._generation:
+                    continue
+                self._latest = live
+                self._error = None
+                self.frames_produced += 1
+                self._cond.notify_all()
+
+    def frames(self, *, max_frames: int | None = None, timeout_s: float = 10.0) -> Iterator[LiveFrame | str]:
+        """Newest frames for one viewer, each at most once; a string when the camera is unavailable
+        (the reason). Ends after ``max_frames`` frames or ``timeout_s`` without a new one."""
+        with self._cond:
+            self._viewers += 1
+            self._ensure_running()
+        last = self._latest.seq if self._latest is not None else 0
+        sent = 0
+
+        def ready(after: int) -> bool:
+            return (self._latest is not None and self._latest.seq > after) or self._error is not None
+
+        try:
+            while max_frames is None or sent < max_frames:
+                with self._cond:
+                    ok = self._cond.wait_for(lambda after=last: ready(after), timeout=timeout_s)
+                    if not ok:
+                        return
+                    if self._latest is not None and self._latest.seq > last:
+                        item: LiveFrame | str = self._latest
+                        last = self._latest.seq
+                    else:
+                        item = self._error or "unavailable"
+                        self._error = None
+                if isinstance(item, str):
+                    yield item
+                    time.sleep(0.25)
+                    continue
+                sent += 1
+                yield item
+        finally:
+            with self._cond:
+                self._viewers -= 1
+                self._last_viewer = time.monotonic()
+
+    def snapshot(self) -> LiveFrame | None:
+        with self._cond:
+            return self._latest

@@ -1,0 +1,345 @@
+"""Axes without home switches: the operator's origin, set on the controller and recorded.
+
+A turntable or tilt stage without switches (``homing = "none"`` in the rig file, the
+default: a factory GRBL 1.1 has homing off, ``$22=0``) cannot find its zero by itself.
+The operator turns it to the zero mark and runs ``m2s2hil rig origin AXIS --rig FILE``:
+
+- GRBL: ``G10 L20 P1 X0`` makes the current place the axis's zero of the G54 work
+  coordinate system. GRBL keeps the G54..G59 offsets in EEPROM, so they survive resets
+  and power cycles (GRBL v1.1 wiki, "Grbl v1.1 Commands": ``G10 L2``/``G10 L20`` write
+  the work coordinate offsets, stored in EEPROM; ``G92`` offsets are not persistent).
+  ``$#`` reads them back. Moves stay in machine coordinates (G53); the driver adds the
+  G54 offset (:attr:`m2s2hil.drivers.grbl.GrblAxis.origin_units`).
+- Zaber: ``set pos 0`` gives the current place the position 0 without moving (the ``pos``
+  setting is writable: Zaber ASCII Protocol Manual, firmware 7, "pos").
+
+The origin is recorded in the rig's state file, ``<rig file stem>.state.json`` next to
+the rig file (it describes that rig; sessions on any data root use it), with what the
+controller reported. When the rig opens (:func:`establish_origins`), every axis without
+switches must have a recorded origin, and the controller must still hold it: GRBL not in
+alarm and its G54 offset the recorded one; Zaber the same device (serial number) and no
+fault flag. Otherwise opening stops with a :class:`~m2s2hil.rig.open_errors.RigOpenError`
+telling the operator to run ``rig origin``. Limits (docs/rig-setup.md): GRBL zeroes its
+machine position at power-up, and a board that resets when its port opens (an Arduino's
+DTR line) does so at every connection; the G54 offset survives, so the origin holds as
+long as the axis is not moved while the controller is off. Neither controller can tell
+that an axis was turned by hand.
+
+In-process simulated axes (``sim://``) start from their power-up position, which is their
+origin: they need no record.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from m2s2hil.config import AxisConfig, RigConfig
+from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
+from m2s2hil.errors import M2S2Error, UsageError
+from m2s2hil.rig.open_errors import RigOpenError, opening
+
+if TYPE_CHECKING:
+    from m2s2hil.rig.opened import Rig
+
+STATE_FORMAT = "m2s2hil-rig-state/1"
+#: How far (machine units) a controller's stored offset may differ from the recorded one.
+OFFSET_TOLERANCE_UNITS = 1e-3
+
+
+class StateFileError(UsageError):
+    """A rig state file that cannot be read or written."""
+
+
+class PositionLost(M2S2Error):
+    """A controller restarted (power cycle, replugged USB) under axes without switches: their
+    position is gone and only the operator can set the origin again. Not a device fault the
+    engine may retry: the run stops."""
+
+    fault_class = "other"
+
+    def __init__(self, device: str, roles: list[str]) -> None:
+        self.device = device
+        self.roles = roles
+        super().__init__(f"{device} restarted: {', '.join(roles)} lost the position (no home switches); "
+                         "turn each to its zero mark and run `m2s2hil rig origin AXIS --rig FILE`, "
+                         "then resume")
+
+
+@dataclass(frozen=True)
+class AxisOrigin:
+    device: str  # the rig file's device name
+    protocol: str
+    axis: str  # GRBL letter or Zaber axis number
+    controller: str  # what the controller said it is ("GRBL 1.1h.20190830", "Zaber 50000 serial 12345")
+    offset_units: float  # GRBL: the G54 offset written by G10 L20; Zaber: 0 (set pos 0)
+    set_at: str  # UTC, ISO 8601
+
+
+@dataclass
+class RigState:
+    rig: str = ""
+    origins: dict[str, AxisOrigin] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, path: Path | None) -> RigState:
+        if path is None or not path.exists():
+            return cls()
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+            if doc.get("format") != STATE_FORMAT:
+                raise ValueError(f"format {doc.get('format')!r}, expected {STATE_FORMAT!r}")
+            origins = {role: AxisOrigin(**o) for role, o in dict(doc.get("origins", {})).items()}
+        except (OSError, ValueError, TypeError, AttributeError) as exc:
+            raise StateFileError(f"{path}: not a usable rig state file ({exc}); delete it and set the "
+                                 "origins again with `m2s2hil rig origin`") from None
+        return cls(rig=str(doc.get("rig", "")), origins=origins)
+
+    def save(self, path: Path) -> None:
+        from m2s2hil.store.atomic import write_text_atomic
+
+        doc = {"format": STATE_FORMAT, "rig": self.rig,
+               "origins": {role: asdict(o) for role, o in sorted(self.origins.items())}}
+        try:
+            write_text_atomic(path, json.dumps(doc, indent=2) + "\n")
+        except OSError as exc:
+            raise StateFileError(f"{path}: cannot write the rig state ({exc})") from None
+
+
+def state_path(config: RigConfig) -> Path | None:
+    """``my_rig.state.json`` next to ``my_rig.toml``; None for a rig that has no file."""
+    src = config.source_path
+    return None if src is None else src.with_name(src.stem + ".state.json")
+
+
+def _in_process(port: str) -> bool:
+    return port.startswith("sim://")
+
+
+# -- GRBL ------------------------------------------------------------------------------------
+def grbl_work_offsets(ctl: Any) -> dict[str, tuple[float, ...]]:
+    """``$#``: the stored coordinate tables by name (``G54`` .. ``G59``, ``G28``, ``G30``, ``G92``)."""
+    from m2s2hil.protocols.grbl import Feedback
+
+    out: dict[str, tuple[float, ...]] = {}
+    for ev in ctl.command("$#", idempotent=True):
+        if isinstance(ev, Feedback) and ev.tag.startswith("G"):
+            try:
+                out[ev.tag] = tuple(float(v) for v in ev.text.split(":")[0].split(","))
+            except ValueError:
+                continue
+    return out
+
+
+def _grbl_identity(ctl: Any) -> str:
+    return f"GRBL {ctl.version}"
+
+
+def _zaber_identity(zd: Any) -> str:
+    return f"Zaber {zd.info.get('deviceid', '?')} serial {zd.info.get('system.serial', '?')}"
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+def _axis(config: RigConfig, role: str) -> AxisConfig:
+    if role not in config.axes:
+        raise UsageError(f"no axis {role!r} in the rig file; axes: {', '.join(sorted(config.axes))}")
+    return config.axes[role]  # type: ignore[index]
+
+
+def set_origin(config: RigConfig, role: str, *, clock: Clock = SYSTEM_CLOCK,
+               path: Path | None = None) -> AxisOrigin:
+    """Make where axis ``role`` stands its zero, on the controller and in the state file."""
+    ax = _axis(config, role)
+    dev = config.devices[ax.device]
+    path = path or state_path(config)
+    if _in_process(dev.port):
+        raise UsageError(f"{role} is simulated in-process ({dev.port}): it starts at its origin every time "
+                         "the rig opens, there is nothing to record")
+    if path is None:
+        raise UsageError("the rig has no file to keep its state next to: pass --rig FILE")
+    state = RigState.load(path)
+    if dev.protocol == "grbl":
+        origin = _set_grbl_origin(ax, dev, role, clock)
+    else:
+        origin = _set_zaber_origin(ax, dev, role, clock)
+    state.rig = config.rig.name
+    state.origins[role] = origin
+    state.save(path)
+    return origin
+
+
+def _set_grbl_origin(ax: AxisConfig, dev: Any, role: str, clock: Clock) -> AxisOrigin:
+    from m2s2hil.drivers.grbl import GrblController
+
+    ctl = GrblController(dev.port, device=ax.device, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
+                         clock=clock, retries=dev.retries)
+    try:
+        with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+            ctl.connect()
+        return _grbl_origin_on(ctl, ax, dev)
+    finally:
+        ctl.close()
+
+
+def _grbl_origin_on(ctl: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
+    """``G10 L20`` on a connected controller, read back with ``$#``."""
+    from m2s2hil.protocols.grbl import AXES
+
+    letter = ax.axis.upper()
+    with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+        st = ctl.status()
+        if st.state == "Alarm":
+            # The operator is placing the zero by hand: the controller's old position does
+            # not matter any more, so unlocking ($X) is safe here.
+            st = ctl.clear_alarm(home=False)
+        if st.moving:
+            raise RigOpenError(ax.device, dev.port, "device error",
+                               f"the controller is busy ({st.state_text})",
+                               "wait until the axis stands still")
+        ctl.command(f"G10 L20 P1 {letter}0")
+        g54 = grbl_work_offsets(ctl).get("G54")
+        here = ctl.axis_position(letter)
+    i = AXES.index(letter)
+    if g54 is None or abs(g54[i] - here) > OFFSET_TOLERANCE_UNITS:
+        raise RigOpenError(ax.device, dev.port, "device error",
+                           f"after G10 L20 the controller reports G54 {g54} with the axis at {here}",
+                           "run `m2s2hil rig probe` and check the controller's firmware")
+    return AxisOrigin(ax.device, "grbl", letter, _grbl_identity(ctl), float(g54[i]), _now())
+
+
+def _set_zaber_origin(ax: AxisConfig, dev: Any, role: str, clock: Clock) -> AxisOrigin:
+    from m2s2hil.drivers.zaber import ZaberDevice
+
+    zd = ZaberDevice(dev.port, device=ax.device, address=dev.unit, baudrate=dev.baudrate,
+                     timeout_s=dev.timeout_s, clock=clock, retries=dev.retries)
+    try:
+        with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+            zd.connect()
+        return _zaber_origin_on(zd, ax, dev)
+    finally:
+        zd.close()
+
+
+def _zaber_origin_on(zd: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
+    """``set pos 0`` on a connected device, read back."""
+    with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+        number = int(ax.axis)
+        zd.request(number, "set pos 0", check_faults=False)
+        pos = zd.get("pos", number)
+    if pos.strip() != "0":
+        raise RigOpenError(ax.device, dev.port, "device error", f"after set pos 0 the axis reports {pos}")
+    return AxisOrigin(ax.device, "zaber", str(number), _zaber_identity(zd), 0.0, _now())
+
+
+def set_origin_open(rig: Rig, role: str) -> AxisOrigin:
+    """:func:`set_origin` through the opened rig's own connection (the daemon holds the ports
+    exclusively, so it cannot open them a second time); the axis driver counts from the new
+    origin at once."""
+    from m2s2hil.drivers.grbl import GrblAxis, GrblController
+    from m2s2hil.drivers.zaber import ZaberDevice
+    from m2s2hil.rig.mirror import MirroredAxis
+
+    config = rig.config
+    ax = _axis(config, role)
+    dev = config.devices[ax.device]
+    if ax.homing != "none":
+        raise UsageError(f"{role} homes on its switches (homing = \"switches\"): home it instead")
+    if _in_process(dev.port):
+        raise UsageError(f"{role} is simulated in-process ({dev.port}): it starts at its origin every time "
+                         "the rig opens, there is nothing to record")
+    path = state_path(config)
+    if path is None:
+        raise UsageError("the rig has no file to keep its state next to: start the daemon with --rig FILE")
+    link = next((lk for lk in rig.links if lk.means(ax.device)), None)
+    owner = link.reconnect if link is not None else None
+    if isinstance(owner, GrblController):
+        origin = _grbl_origin_on(owner, ax, dev)
+        drv: object = rig.axis(role)  # type: ignore[arg-type]
+        if isinstance(drv, MirroredAxis):
+            drv = drv.wrapped
+        if isinstance(drv, GrblAxis):
+            drv.origin_units = origin.offset_units
+    elif isinstance(owner, ZaberDevice):
+        origin = _zaber_origin_on(owner, ax, dev)
+    else:
+        raise UsageError(f"{role}: no open connection to {ax.device} to set the origin through")
+    state = RigState.load(path)
+    state.rig = config.rig.name
+    state.origins[role] = origin
+    state.save(path)
+    return origin
+
+
+# -- when the rig opens ----------------------------------------------------------------------
+def establish_origins(config: RigConfig, controllers: Mapping[str, Any], axes: Mapping[str, Any],
+                      *, path: Path | None = None) -> dict[str, float]:
+    """Check every axis without switches stands in a known frame and put its origin into the driver.
+
+    ``controllers`` maps device names to connected drivers, ``axes`` roles to axis drivers.
+    Returns each checked role's origin offset (machine units). Raises RigOpenError when an
+    origin was never set or the controller no longer holds it.
+    """
+    from m2s2hil.protocols.grbl import AXES
+
+    path = path or state_path(config)
+    state: RigState | None = None
+    out: dict[str, float] = {}
+    for role, ax in config.axes.items():
+        if ax.homing != "none" or ax.device not in controllers:
+            continue
+        dev = config.devices[ax.device]
+        ctl = controllers[ax.device]
+        with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+            if dev.protocol == "grbl":
+                st = ctl.status()
+                if st.state == "Alarm":
+                    if ctl.settings.get(22):
+                        raise RigOpenError(
+                            ax.device, dev.port, "alarm",
+                            "the controller has homing on ($22=1) and boots locked, but the rig file says "
+                            f"{role} has no switches (homing = \"none\")",
+                            "set $22=0 (`m2s2hil rig probe FILE --apply`) or homing = \"switches\"")
+                    raise RigOpenError(ax.device, dev.port, "alarm",
+                                       f"the controller is in alarm (last ALARM:{int(ctl.last_alarm or 0)}); "
+                                       f"{role}'s position is not trusted", None)
+                g54 = grbl_work_offsets(ctl).get("G54")
+                if g54 is None:
+                    raise RigOpenError(ax.device, dev.port, "device error", "`$#` reported no G54 offset")
+                offset = g54[AXES.index(ax.axis.upper())]
+                identity = _grbl_identity(ctl)
+            else:
+                reply = ctl.request(int(ax.axis), "", idempotent=True, check_faults=False)
+                if reply.fault:
+                    raise RigOpenError(ax.device, dev.port, "alarm",
+                                       f"axis {ax.axis} reports fault {reply.warning}")
+                offset = 0.0
+                identity = _zaber_identity(ctl)
+        if not _in_process(dev.port):
+            if state is None:
+                state = RigState.load(path)
+            rec = state.origins.get(role)
+            where = f" (state file {path})" if path is not None else " (the rig has no file to keep state in)"
+            if rec is None or rec.device != ax.device or rec.axis.upper() != ax.axis.upper():
+                raise RigOpenError(role, dev.port, "no origin",
+                                   f"{role} has no home switches and no recorded origin{where}")
+            if rec.controller != identity:
+                raise RigOpenError(role, dev.port, "position unknown",
+                                   f"the origin was set on {rec.controller}, this is {identity}")
+            if abs(rec.offset_units - offset) > OFFSET_TOLERANCE_UNITS:
+                raise RigOpenError(role, dev.port, "position unknown",
+                                   f"the controller's stored origin is {offset:g}, the recorded one "
+                                   f"{rec.offset_units:g} (changed by another program, or its EEPROM reset)")
+        drv = axes.get(role)
+        if dev.protocol == "grbl" and drv is not None:
+            drv.origin_units = offset
+        if drv is not None:
+            drv.position()  # the controller reports a position in this frame (raises if it cannot)
+        out[role] = offset
+    return out

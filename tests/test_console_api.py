@@ -1,0 +1,217 @@
+"""The operator console's endpoints against a daemon on the simulated rig (virtual clock): manual
+control, the live stream, snapshots, calibration captures, plan estimates, the session browser."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from api_support import daemon, long_sweep, sweep
+from m2s2hil.processing.calibration import load_calibration
+from m2s2hil.rig.live_view import HIST_BINS
+
+
+@pytest.fixture
+def d(tmp_path: Path):
+    with daemon(tmp_path / "data") as dd:
+        yield dd
+
+
+def wait_idle(d, axis: str, timeout: float = 30.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        axes = {a["role"]: a for a in d.client.get("/rig/axes").json()["axes"]}
+        if not axes[axis]["moving"]:
+            return axes[axis]
+        assert time.monotonic() < deadline, "the axis never stopped"
+        time.sleep(0.01)
+
+
+def mjpeg_parts(body: bytes) -> list[tuple[dict[str, str], bytes]]:
+    parts = []
+    for chunk in body.split(b"--m2s2hil-frame\r\n")[1:]:
+        head, _, rest = chunk.partition(b"\r\n\r\n")
+        fields = dict(line.split(": ", 1) for line in head.decode().split("\r\n") if ": " in line)
+        n = int(fields["Content-Length"])
+        parts.append((fields, rest[:n]))
+    return parts
+
+
+def test_console_page_is_served_offline_with_a_strict_policy(d) -> None:
+    r = d.client.get("/")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    csp = r.headers["content-security-policy"]
+    assert "frame-ancestors 'none'" in csp and "script-src 'self'" in csp
+    assert r.headers["x-frame-options"] == "DENY"
+    assert '<script src="/console/console.js"' in r.text and "http" not in r.text.split("<body>")[0].lower()
+    js = d.client.get("/console/console.js")
+    assert js.status_code == 200 and "text/javascript" in js.headers["content-type"]
+    assert "innerHTML" not in js.text  # every daemon string reaches the page as text
+    assert d.client.get("/console/../app.py").status_code in (404, 422)
+
+
+def test_jog_moves_the_stage_and_limits_are_refused_before_sending(d) -> None:
+    before = wait_idle(d, "turntable")["position_deg"]
+    r = d.client.post("/rig/axes/turntable/jog", json={"delta_deg": 10})
+    assert r.status_code == 202, r.text
+    assert r.json()["target_deg"] == pytest.approx(before + 10)
+    after = wait_idle(d, "turntable")["position_deg"]
+    assert after == pytest.approx(before + 10, abs=0.05)
+    # read back through GET /rig too (the device, not the console's own view)
+    rig = {e["name"]: e for e in d.client.get("/rig").json()["devices"]}
+    assert rig["stage"]["state"]["turntable_deg"] == pytest.approx(after, abs=0.05)
+    tilt = d.client.get("/rig/axes").json()["axes"][1]
+    r = d.client.post("/rig/axes/tilt/goto", json={"position_deg": tilt["max_deg"] + 1})
+    assert r.status_code == 422 and "soft limits" in r.json()["detail"]
+    assert wait_idle(d, "tilt")["position_deg"] == pytest.approx(tilt["position_deg"], abs=0.05)
+
+
+def test_lamp_presets_and_single_lamps(d) -> None:
+    r = d.client.put("/rig/lamps", json={"preset": "weak"})
+    assert r.status_code == 200 and r.json()["lamps_on"] == ["bar1", "bar2", "bar3"]
+    assert d.client.put("/rig/lamps", json={"lamps": ["spot"]}).json()["lamps_on"] == ["spot"]
+    assert sorted(d.rig.lights.state()) == [d.rig.config.lamps["spot"].channel]
+    r = d.client.put("/rig/lamps", json={"lamps": ["nope"]})
+    assert r.status_code == 422 and "nope" in r.json()["detail"]
+    assert d.client.put("/rig/lamps", json={"preset": None}).json()["lamps_on"] == []
+
+
+def test_manual_control_is_refused_while_a_session_owns_the_rig(d) -> None:
+    sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
+    d.wait_state(sid, "running")
+    r = d.client.post("/rig/axes/turntable/jog", json={"delta_deg": 5})
+    assert r.status_code == 409 and sid in r.json()["detail"]
+    assert d.client.put("/rig/lamps", json={"preset": None}).status_code == 409
+    assert d.client.post("/snapshots", json={}).status_code == 409
+    assert d.client.get("/rig/axes").json()["owner"] == sid
+    d.client.post(f"/sessions/{sid}/abort")
+    d.wait_done(sid)
+    assert d.client.post("/rig/axes/turntable/jog", json={"delta_deg": 1}).status_code == 202
+
+
+def test_live_stream_frames_and_statistics(d) -> None:
+    assert d.client.put("/camera/live", json={"exposure_s": 0.004, "view": "rgb"}).status_code == 200
+    r = d.client.get("/camera/live.mjpeg", params={"max_frames": 3})
+    assert r.status_code == 200 and r.headers["content-type"].startswith("multipart/x-mixed-replace")
+    parts = mjpeg_parts(r.content)
+    assert len(parts) == 3
+    size = d.rig.config.camera.model.width // d.rig.config.camera.model.period
+    seqs = []
+    for fields, jpeg in parts:
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert img.shape == (size, size, 3)
+        st = json.loads(fields["X-Live-Stats"])
+        assert len(st["histogram"]) == HIST_BINS and sum(st["histogram"]) > 0
+        assert 0.0 <= st["saturated_fraction"] <= 1.0 and st["focus"] > 0
+        assert st["exposure_s"] == pytest.approx(0.004)
+        seqs.append(st["seq"])
+    assert seqs == sorted(set(seqs))  # each frame once, in order
+    r = d.client.put("/camera/live", json={"view": 3, "gain": 2.0})
+    assert r.json()["settings"]["view"] == 3
+    (fields, _), = mjpeg_parts(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)
+    st = json.loads(fields["X-Live-Stats"])
+    assert st["view"] == 3 and st["gain"] == 2.0
+    assert d.client.put("/camera/live", json={"view": 99}).status_code == 422
+    assert d.client.put("/camera/live", json={"exposure_s": -1}).status_code == 422
+
+
+def test_live_view_longer_exposure_saturates_more(d) -> None:
+    d.client.put("/rig/lamps", json={"preset": "strong"})
+    fractions = []
+    for exposure in (0.001, 0.2):
+        d.client.put("/camera/live", json={"exposure_s": exposure})
+        (fields, _), = mjpeg_parts(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)
+        fractions.append(json.loads(fields["X-Live-Stats"])["saturated_fraction"])
+    assert fractions[0] < fractions[1]
+
+
+def test_snapshot_is_stored_outside_sessions_and_downloadable(d) -> None:
+    d.client.put("/rig/lamps", json={"preset": "weak"})
+    r = d.client.post("/snapshots", json={"note": "centring\nline two", "exposure_s": 0.005})
+    assert r.status_code == 201, r.text
+    meta = r.json()
+    assert meta["lamps_on"] == ["bar1", "bar2", "bar3"] and meta["exposure_s"] == 0.005
+    raw = d.client.get(meta["files"]["raw.tiff"])
+    assert raw.status_code == 200 and "attachment" in raw.headers["content-disposition"]
+    tmp = d.root / "dl.tiff"
+    tmp.write_bytes(raw.content)
+    with tifffile.TiffFile(tmp) as tf:
+        arr = tf.asarray()
+        desc = json.loads(tf.pages[0].description)
+    m = d.rig.config.camera.model
+    assert arr.shape == (m.height, m.width) and arr.dtype == np.uint16
+    assert desc["turntable_deg"] == pytest.approx(meta["turntable_deg"])
+    assert d.client.get("/snapshots").json()["items"][0]["id"] == meta["id"]
+    assert d.client.get(f"/snapshots/{meta['id']}/preview.png").headers["content-type"] == "image/png"
+    assert d.client.get("/snapshots/20990101T000000-abcdef").status_code == 404
+    assert d.client.get("/snapshots/..%2F..%2Fetc").status_code in (404, 422)
+    assert not any(p.name == "snapshots" for p in d.root.glob("*/snapshots"))  # not inside a session
+
+
+def test_calibration_darks_white_reference_and_phase(d) -> None:
+    plan = sweep(lighting=["weak", "directional"])
+    r = d.client.post("/calibration/darks", json={"plan": plan, "n_frames": 2})
+    assert r.status_code == 201, r.text
+    darks = r.json()["darks"]
+    assert len(darks) >= 1 and all(x["n_frames"] == 2 for x in darks)
+    assert len(d.client.get("/calibration").json()["darks"]) == len(darks)
+
+    too_bright = {"exposure_s": 2.0, "n_frames": 2, "lighting": "strong"}
+    r = d.client.post("/calibration/white", json=too_bright)
+    assert r.status_code == 422 and "saturated" in r.json()["detail"]
+    cal = d.client.get("/calibration").json()
+    assert not cal["exists"]
+
+    r = d.client.post("/calibration/white", json={"exposure_s": 0.005, "n_frames": 4, "lighting": "strong"})
+    assert r.status_code == 201, r.text
+    prov = r.json()["provenance"]
+    assert prov["checks"]["saturated_fraction"] == 0.0 and prov["lighting"] == "strong"
+    calib = load_calibration(r.json()["file"], d.rig.config.camera.model)
+    assert calib.white_mosaic is not None and calib.white_mosaic.shape == (d.rig.config.camera.model.height,
+                                                                          d.rig.config.camera.model.width)
+    doc = json.loads(Path(r.json()["file"]).read_text())
+    assert doc["white_reference"]["provenance"]["n_frames"] == 4
+    assert d.rig.lights.state() == frozenset()  # the preset's lamps are off again
+
+    d.client.put("/rig/lamps", json={"preset": "strong"})
+    r = d.client.post("/calibration/phase", json={"exposure_s": 0.02})
+    assert r.status_code == 200, r.text
+    assert r.json()["suspect"] is False
+
+
+def test_plan_estimate_matches_the_plan(d) -> None:
+    from m2s2hil.plan import Sweep
+
+    body = sweep(tilts=["E0", "E1"], azimuth_step_deg=30)
+    r = d.client.post("/plans/estimate", json=body)
+    assert r.status_code == 200, r.text
+    est = Sweep.model_validate(body).estimate(d.rig.config)
+    out = r.json()
+    assert out["frames"] == 2 * 12 and out["estimate_s"] == pytest.approx(est.total_s)
+    assert 0 < out["lower_bound_s"] <= out["estimate_s"]
+    assert d.client.post("/plans/estimate", json={**body, "azimuth_step_deg": 0.001}).status_code == 422
+    assert list(d.root.iterdir()) == [] or not any(p.is_dir() and p.name[0].isdigit() for p in d.root.iterdir())
+
+
+def test_session_browser_reads_without_writing(d) -> None:
+    sid = d.client.post("/sessions", json=sweep()).json()["session_id"]
+    d.wait_done(sid)
+    folder = d.root / sid
+    before = {p: p.stat().st_mtime_ns for p in folder.rglob("*") if p.is_file()}
+    r = d.client.get(f"/sessions/{sid}/report.html")
+    assert r.status_code == 200 and "<html" in r.text.lower() and "script" not in r.headers[
+        "content-security-policy"].replace("script-src", "")
+    v = d.client.get(f"/sessions/{sid}/verify").json()
+    assert v["ok"] is True and v["frames"] == 4
+    e = d.client.post(f"/sessions/{sid}/export", json={"layout": "m2s2"})
+    assert e.status_code == 201, e.text
+    assert e.json()["images"] == 4 and Path(e.json()["folder"]).is_dir()
+    after = {p: p.stat().st_mtime_ns for p in folder.rglob("*") if p.is_file()}
+    assert {p for p in after if "journal" not in p.name} == {p for p in before if "journal" not in p.name}
+    assert all(after[p] == before[p] for p in before if p in after and "journal" not in p.name)
