@@ -53,6 +53,14 @@ class CommandRejected(DeviceError):
         super().__init__(message, **kw)
 
 
+class ControllerLocked(CommandRejected):
+    """A command refused because the controller is locked after an alarm (GRBL ``error:9``): its
+    position is not trusted until the alarm is cleared, so the fault is an alarm, recovered as
+    the axis's homing policy says (home on switches, or unlock and re-read)."""
+
+    fault_class = "alarm"
+
+
 class DeviceGone(DeviceError):
     """The port or the USB device vanished."""
 

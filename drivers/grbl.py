@@ -28,6 +28,7 @@ from m2s2hil.drivers.axis_base import AxisSpec, MotionController, RotaryAxisBase
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import (
     CommandRejected,
+    ControllerLocked,
     DeviceGone,
     DeviceTimeout,
     ProtocolError,
@@ -339,7 +340,8 @@ class GrblController(MotionController[Event]):
                 return collected
             if isinstance(ev, Error):
                 self._counter.acknowledged()
-                raise CommandRejected(
+                rejected = ControllerLocked if int(ev.code) == int(GrblError.LOCKED) else CommandRejected
+                raise rejected(
                     f"error:{int(ev.code)} ({_name(ev.code)})",
                     code=ev.code,
                     device=self.device,
@@ -432,6 +434,9 @@ class GrblAxis(RotaryAxisBase):
         )
         self.ctl = controller
         self.letter = letter
+        #: Machine units of the axis's zero: the G54 offset an operator set with ``G10 L20`` on an
+        #: axis without switches (m2s2hil/rig/origin.py); 0 for a homed axis.
+        self.origin_units = 0.0
 
     def _feed(self, dps: float) -> float:
         return dps * self.units_per_degree * 60.0
@@ -451,7 +456,8 @@ class GrblAxis(RotaryAxisBase):
 
     def _command_move(self, degrees: float) -> str:
         line = move_line(
-            {self.letter: degrees * self.units_per_degree}, feed=self._feed(self.max_speed_dps), machine=True
+            {self.letter: degrees * self.units_per_degree + self.origin_units},
+            feed=self._feed(self.max_speed_dps), machine=True,
         )
         self.ctl.command(line)
         return line
@@ -460,12 +466,13 @@ class GrblAxis(RotaryAxisBase):
         """A jog towards the soft limit on that side; stop() ends it."""
         target = self.max_deg if direction > 0 else self.min_deg
         line = jog_line(
-            {self.letter: target * self.units_per_degree}, feed=self._feed(speed_dps), machine=True
+            {self.letter: target * self.units_per_degree + self.origin_units}, feed=self._feed(speed_dps),
+            machine=True,
         )
         self.ctl.command(line)
 
     def position(self) -> float:
-        return self.ctl.axis_position(self.letter) / self.units_per_degree
+        return (self.ctl.axis_position(self.letter) - self.origin_units) / self.units_per_degree
 
     def stop(self) -> None:
         self.ctl.stop()

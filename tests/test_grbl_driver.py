@@ -5,9 +5,10 @@ import itertools
 
 import pytest
 import serial
-from m2s2hil.drivers.clock import SYSTEM_CLOCK
+from m2s2hil.drivers.clock import SYSTEM_CLOCK, SystemClock
 from m2s2hil.drivers.errors import (
     CommandRejected,
+    ControllerLocked,
     DeviceGone,
     DeviceTimeout,
     MoveNotVerified,
@@ -19,7 +20,6 @@ from m2s2hil.drivers.grbl import GrblController
 from m2s2hil.drivers.interfaces import RotaryAxis
 from m2s2hil.protocols.grbl import GrblAlarm, GrblError
 from m2s2hil.simulators import registry
-from m2s2hil.simulators.clock import RealClock
 from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice
@@ -145,9 +145,12 @@ def test_error_replies_become_command_rejected(scripted):
     with pytest.raises(CommandRejected) as exc:
         axis.home()
     assert exc.value.code is GrblError.HOMING_DISABLED and exc.value.command == "$H"
-    with pytest.raises(CommandRejected) as exc:
+    assert exc.value.fault_class == "protocol"
+    with pytest.raises(ControllerLocked) as exc:
         axis.move_to(10)
     assert exc.value.code is GrblError.LOCKED and exc.value.device == "stage"
+    # a locked controller is an alarm to recover from (home or unlock), not a command to retry
+    assert isinstance(exc.value, CommandRejected) and exc.value.fault_class == "alarm"
     dev.verify()
 
 
@@ -337,7 +340,7 @@ FAST = {
 
 @pytest.mark.timeout(20)
 def test_driver_over_a_pty():
-    sim = GrblSimulator("grbl-pty", RealClock(), axes=FAST, settings={22: 1})
+    sim = GrblSimulator("grbl-pty", SystemClock(), axes=FAST, settings={22: 1})
     with PtyServer(sim) as srv:
         ctl = GrblController(srv.path, clock=SYSTEM_CLOCK, timeout_s=0.5, poll_interval_s=0.01)
         try:
@@ -357,7 +360,7 @@ def test_driver_over_a_pty():
 @pytest.mark.timeout(20)
 def test_third_party_client_speaks_grbl_to_the_simulator():
     """Plain pyserial, the way a GRBL sender would, against the simulator on a pty."""
-    sim = GrblSimulator("grbl-3p", RealClock(), axes=FAST)  # factory: homing off
+    sim = GrblSimulator("grbl-3p", SystemClock(), axes=FAST)  # factory: homing off
     with PtyServer(sim) as srv:
         port = serial.Serial(srv.path, 115200, timeout=1)
         try:
@@ -384,7 +387,7 @@ def test_threads_share_the_line_one_transaction_at_a_time():
     """The engine polls status while the API reads it: replies must never cross."""
     import threading
 
-    sim = GrblSimulator("locked", RealClock())
+    sim = GrblSimulator("locked", SystemClock())
     with PtyServer(sim) as srv:
         ctl = GrblController(srv.path, device="stage", timeout_s=2.0, retries=0)
         ctl.connect()
@@ -407,3 +410,43 @@ def test_threads_share_the_line_one_transaction_at_a_time():
             t.join(timeout=60)
         ctl.close()
     assert errors == []
+
+
+def test_factory_controller_refuses_homing_with_a_typed_error(vclock):
+    name = f"grbl-factory-{next(_names)}"
+    sim = GrblSimulator(name, vclock)  # GRBL 1.1h defaults: $22=0
+    registry.register(name, sim)
+    ctl = GrblController(f"sim://{name}", clock=vclock)
+    try:
+        assert ctl.connect().state == "Idle"  # no boot lock without homing
+        assert (ctl.settings[22], ctl.settings[110], ctl.settings[120]) == (0.0, 500.0, 10.0)
+        with pytest.raises(CommandRejected) as err:
+            ctl.home()
+        assert err.value.code == GrblError.HOMING_DISABLED and "$H" in str(err.value)
+        ctl.command("G10 L20 P1 X0")  # the operator's origin instead
+        assert sim.coord_data[54] == [0.0, 0.0, 0.0]
+    finally:
+        ctl.close()
+        registry.unregister(name)
+
+
+def test_clear_alarm_after_a_soft_limit_copes_with_the_late_ok(vclock):
+    """After ALARM:2 GRBL answers the offending line's ok only after the reset, before the
+    banner: the driver must not take that ok for the answer to its next line."""
+    name = f"grbl-softlimit-{next(_names)}"
+    sim = GrblSimulator(name, vclock, axes={"X": GrblAxisSettings(max_rate=3600, accel=120, max_travel=100)},
+                        settings={22: 1, 20: 1})
+    registry.register(name, sim)
+    ctl = GrblController(f"sim://{name}", clock=vclock)
+    try:
+        ctl.connect()
+        ctl.home()
+        with pytest.raises(StageAlarm) as err:
+            ctl.command("G53 G0 X-150")
+        assert err.value.code == GrblAlarm.SOFT_LIMIT and ctl.critical
+        assert ctl.clear_alarm().state == "Idle"
+        assert ctl.command("$I")  # answered by its own [VER:] lines and ok, nothing left over
+        assert ctl.command("G53 G0 X-10") == [] and ctl.wait_until_idle(5).mpos[0] == pytest.approx(-10.0)
+    finally:
+        ctl.close()
+        registry.unregister(name)

@@ -31,9 +31,10 @@ origin: they need no record.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -180,12 +181,19 @@ def _set_grbl_origin(ax: AxisConfig, dev: Any, role: str, clock: Clock) -> AxisO
 
     ctl = GrblController(dev.port, device=ax.device, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
                          clock=clock, retries=dev.retries)
+    with _connected(ctl, ax, dev):
+        return _grbl_origin_on(ctl, ax, dev)
+
+
+@contextlib.contextmanager
+def _connected(driver: Any, ax: AxisConfig, dev: Any) -> Iterator[None]:
+    """A connection of our own for the command line (closed afterwards); errors as when opening a rig."""
     try:
         with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
-            ctl.connect()
-        return _grbl_origin_on(ctl, ax, dev)
+            driver.connect()
+        yield
     finally:
-        ctl.close()
+        driver.close()
 
 
 def _grbl_origin_on(ctl: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
@@ -219,12 +227,8 @@ def _set_zaber_origin(ax: AxisConfig, dev: Any, role: str, clock: Clock) -> Axis
 
     zd = ZaberDevice(dev.port, device=ax.device, address=dev.unit, baudrate=dev.baudrate,
                      timeout_s=dev.timeout_s, clock=clock, retries=dev.retries)
-    try:
-        with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
-            zd.connect()
+    with _connected(zd, ax, dev):
         return _zaber_origin_on(zd, ax, dev)
-    finally:
-        zd.close()
 
 
 def _zaber_origin_on(zd: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
