@@ -49,6 +49,7 @@ import numpy as np
 from m2s2hil.protocols import u3v
 from m2s2hil.protocols.errors import CodecError
 from m2s2hil.protocols.u3v import ABRM, SBRM, SIRM, PixelFormat, Status
+from m2s2hil.protocols.u3v_bootstrap import DeviceCapability, StringEncoding, encode_device_capability
 from m2s2hil.simulators.fault_injection import FaultPlan
 from m2s2hil.simulators.u3v_backend import (
     EP_CONTROL_IN,
@@ -73,6 +74,21 @@ MAX_ACK_TRANSFER = 1024
 STREAM_ALIGNMENT = 1024
 RESPONSE_TIME_MS = 200
 XML_NAME = "toucan_genicam.xml"
+
+#: What this device has, as the ABRM Device Capability register says it (GenCP 1.x bit
+#: layout): a writable user-defined name, the timestamp registers (0x01F0..0x01FC), ASCII
+#: strings, a family name, an SBRM, the protocol endianness register (0x0208) and a written
+#: length in every WRITEMEM_ACK. No heartbeat/access privilege, message (event) channel,
+#: multi-event, stacked commands or device software interface version register.
+DEVICE_CAPABILITY = encode_device_capability(
+    DeviceCapability.USER_DEFINED_NAME
+    | DeviceCapability.TIMESTAMP
+    | DeviceCapability.FAMILY_NAME
+    | DeviceCapability.SBRM
+    | DeviceCapability.ENDIANNESS_REGISTER
+    | DeviceCapability.WRITTEN_LENGTH_FIELD,
+    StringEncoding.ASCII,
+)
 
 
 class FeatureReg(IntEnum):
@@ -241,6 +257,7 @@ class ToucanCamera:
         # triggered frames: (exposure start, exposure_s, gain) as set when triggered
         self._triggers: deque[tuple[float, float, float]] = deque()
         self._last_start = -math.inf
+        self._last_period = 0.0  # the frame period when the last trigger was taken
         self._jobs: deque[_Job] = deque()
         self._transfers: deque[bytes | memoryview] = deque()
         self._single_done = False
@@ -428,7 +445,7 @@ class ToucanCamera:
             (ABRM.USER_DEFINED_NAME, s.user_name),
         ):
             b[off : off + u3v.STRING_LENGTH] = u3v.encode_string(text)
-        struct.pack_into("<Q", b, ABRM.DEVICE_CAPABILITY, 0)  # capability bits are not modelled
+        struct.pack_into("<Q", b, ABRM.DEVICE_CAPABILITY, DEVICE_CAPABILITY)
         struct.pack_into("<I", b, ABRM.MAX_DEVICE_RESPONSE_TIME, RESPONSE_TIME_MS)
         struct.pack_into("<Q", b, ABRM.MANIFEST_TABLE_ADDRESS, MANIFEST_ADDRESS)
         struct.pack_into("<Q", b, ABRM.SBRM_ADDRESS, SBRM_ADDRESS)
@@ -617,8 +634,11 @@ class ToucanCamera:
             if not self.acquiring or s.trigger_mode != 1:
                 return Status.ACCESS_DENIED, 0.0
             now = max(self.clock.monotonic(), self._acq_t0)
-            start = max(now, self._last_start + self._period())
+            # The previous frame occupies the sensor for ITS period (its own exposure), not
+            # the one just configured: a long exposure after a short one starts at once.
+            start = max(now, self._last_start + self._last_period)
             self._last_start = start
+            self._last_period = self._period()
             self._triggers.append((start, self._exposure_s(), s.gain))
             return Status.SUCCESS, 0.0
         return Status.WRITE_PROTECT, 0.0  # width, height, payload size, temperature

@@ -414,7 +414,9 @@ class SimUsbBackend(usb.backend.IBackend):
             if due is None and deadline is None:
                 raise usb_error(errno.ETIMEDOUT, f"endless read on endpoint 0x{ep:02X} with nothing to come")
             wait = (deadline if due is None else due if deadline is None else min(due, deadline)) - now
-            clock.sleep(max(wait, 0.0))
+            # + 1 ns: on a virtual clock ``now + (due - now)`` can round to just below ``due``,
+            # and a wait that never gets there would spin without time passing.
+            clock.sleep(max(wait, 0.0) + 1e-9)
             self._check(dev_handle)
 
     def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout) -> int:

@@ -163,6 +163,19 @@ def test_snap_frames_on_software_trigger(vclock):
     assert not np.array_equal(frames[0].data, frames[1].data)
 
 
+def test_a_long_exposure_after_a_short_one_is_not_delayed_by_its_own_length(rig, vclock):
+    # The sensor is busy for the previous frame's exposure, not the newly configured one: a 2 s
+    # snap right after a 1 ms one must arrive after about 2 s, within exposure + timeout.
+    _sim, _, cam = rig
+    cam.configure(exposure_s=0.001)
+    cam.snap()
+    cam.configure(exposure_s=2.0)
+    t0 = vclock.monotonic()
+    frame = cam.snap(timeout=2.5)
+    assert frame.exposure_s == pytest.approx(2.0)
+    assert 2.0 <= vclock.monotonic() - t0 < 2.5
+
+
 def test_continuous_frames_on_a_virtual_clock(vclock):
     sim, backend = make(vclock)
     with U3VCamera.open(backend=backend, clock=vclock) as cam:
@@ -411,3 +424,25 @@ def test_zip_manifest(vclock):
         assert cam.manifest.size == len(sim.served_file())
         assert cam.features.get("DeviceModelName") == "TOUCAN"
         assert cam.snap().data.shape == (H, W)
+
+
+def test_device_capability_says_what_the_camera_has(rig):
+    """The ABRM capability bits, read through the driver's control channel, match what the
+    device really answers: a family name, an SBRM, a writable user name, the timestamp and
+    endianness registers; no message channel, no stacked commands."""
+    from m2s2hil.protocols.u3v_bootstrap import DeviceCapability as Cap
+    from m2s2hil.protocols.u3v_bootstrap import StringEncoding, decode_device_capability
+
+    _, _, cam = rig
+    control = cam.control
+    flags, encoding = decode_device_capability(control.read_u64(u3v.ABRM.DEVICE_CAPABILITY))
+    assert encoding == StringEncoding.ASCII
+    assert flags == (Cap.USER_DEFINED_NAME | Cap.TIMESTAMP | Cap.FAMILY_NAME | Cap.SBRM
+                     | Cap.ENDIANNESS_REGISTER | Cap.WRITTEN_LENGTH_FIELD)
+    assert u3v.decode_string(control.read(u3v.ABRM.FAMILY_NAME, u3v.STRING_LENGTH)) == "TOUCAN"
+    sbrm = control.read_u64(u3v.ABRM.SBRM_ADDRESS)
+    assert control.read_u32(sbrm + u3v.SBRM.NUM_STREAM_CHANNELS) == 1
+    control.write(u3v.ABRM.USER_DEFINED_NAME, u3v.encode_string("bench-2"))
+    assert u3v.decode_string(control.read(u3v.ABRM.USER_DEFINED_NAME, u3v.STRING_LENGTH)) == "bench-2"
+    assert control.read_u32(u3v.ABRM.PROTOCOL_ENDIANNESS) == 0xFFFFFFFF
+    assert control.read_u64(u3v.ABRM.TIMESTAMP_INCREMENT) == 1

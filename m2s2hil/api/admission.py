@@ -1,9 +1,17 @@
-"""What a sweep must pass before the daemon creates a session for it: a bounded size, a known
-processing method, a plan the rig can do, and room on the disk."""
+"""What a sweep must pass before the daemon creates a session for it, cheapest check first:
+a bounded size (from the sweep's parameters, nothing expanded), a known processing method,
+room on the disk (estimated from the same counts), and only then the expanded plan, which
+must be one the rig can do.
+
+Expanding a large sweep scores about a hundred candidate orders of up to
+``max_plan_frames`` frames: seconds of CPU. The API calls this from its thread pool (never
+on the event loop), and :data:`EXPANDING` lets one expansion run at a time, so several
+large submissions at once cost one core, not all of them, and the daemon keeps answering."""
 
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 from m2s2hil.config import RigConfig
@@ -11,13 +19,17 @@ from m2s2hil.errors import UsageError
 from m2s2hil.plan import Sweep
 from m2s2hil.processing.demosaic import check_method
 from m2s2hil.store.atomic import DiskFull, check_free_space
-from m2s2hil.store.session import estimate_session_bytes
+from m2s2hil.store.session import estimate_frame_bytes
 
 from .errors import PlanTooLarge
 
+#: One plan expansion at a time (see the module docstring).
+EXPANDING = threading.BoundedSemaphore(1)
+
 
 def planned_frame_count(sweep: Sweep) -> float:
-    """Frames a sweep asks for, without expanding it (inf when absurdly many)."""
+    """Frames a sweep asks for, without expanding it (inf when absurdly many):
+    lighting conditions × tilts × azimuths × frames per pose."""
     ratio = 360.0 / sweep.azimuth_step_deg
     if not math.isfinite(ratio) or ratio > 1e9:
         return math.inf
@@ -25,9 +37,26 @@ def planned_frame_count(sweep: Sweep) -> float:
     return float(len(sweep.lighting) * len(sweep.tilts) * n_az * sweep.frames_per_pose)
 
 
-def check_sweep(sweep: Sweep, cfg: RigConfig, max_plan_frames: int) -> tuple[int, int]:
-    """(planned events, bytes the session will need); :class:`PlanTooLarge`, ``UsageError`` or
-    ``PlanError`` (the rig cannot do it) otherwise. The size is checked before expanding."""
+def planned_dark_count(sweep: Sweep) -> int:
+    """Master darks: one per distinct exposure of the conditions used (the gain is one per sweep)."""
+    if sweep.dark.frames <= 0:
+        return 0
+    return len({sweep.exposure_for(c) for c in sweep.lighting})
+
+
+def estimate_bytes(sweep: Sweep, cfg: RigConfig, frames: int) -> int:
+    """Bytes the session will need, from the counts (the same figures as
+    :func:`m2s2hil.store.session.estimate_session_bytes`, which expands the plan)."""
+    m = cfg.camera.model
+    return frames * estimate_frame_bytes(cfg, sweep.processing) + planned_dark_count(sweep) * (
+        m.width * m.height * 4 + 65536)
+
+
+def check_sweep(sweep: Sweep, cfg: RigConfig, max_plan_frames: int, root: Path | None = None
+                ) -> tuple[int, int]:
+    """(planned events, bytes the session will need); :class:`PlanTooLarge`, ``UsageError``,
+    :class:`DiskFull` (when ``root`` is given and lacks the room) or ``PlanError`` (the rig
+    cannot do it) otherwise. Everything but the last is decided before expanding."""
     n = planned_frame_count(sweep)
     if n > max_plan_frames:
         shown = "too many" if math.isinf(n) else f"{int(n)}"
@@ -39,8 +68,12 @@ def check_sweep(sweep: Sweep, cfg: RigConfig, max_plan_frames: int) -> tuple[int
         check_method(sweep.processing)
     except UsageError as exc:
         raise UsageError(f"body.processing: {exc}") from None
-    events = sweep.expand(cfg)  # PlanError (422) when the rig cannot do it
-    return len(events), estimate_session_bytes(sweep, cfg)
+    need = estimate_bytes(sweep, cfg, int(n))
+    if root is not None:
+        check_room(root, need)
+    with EXPANDING:
+        events = sweep.expand(cfg)  # PlanError (422) when the rig cannot do it
+    return len(events), need
 
 
 def check_room(root: Path, need: int) -> None:

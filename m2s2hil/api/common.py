@@ -7,9 +7,9 @@ cross-site checks then cover it without further code."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
-from fastapi import Depends, HTTPException, Path, Query, Request
+from fastapi import Depends, Header, HTTPException, Path, Query, Request
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
@@ -33,7 +33,10 @@ def error_response(status: int, detail: str, headers: dict[str, str] | None = No
     return StrictJSONResponse({"detail": detail, **extra}, status_code=status, headers=headers)
 
 
-ERRORS: dict[int | str, dict[str, Any]] = {
+#: FastAPI's ``responses=`` (status -> OpenAPI response object).
+Responses = dict[int | str, dict[str, Any]]
+
+ERRORS: Responses = {
     400: {"model": m.ErrorBody, "description": "Malformed request (a body that is not JSON, a number "
                                                 "too long to read, a bad Content-Length)."},
     401: {"model": m.ErrorBody, "description": "Missing or wrong bearer token (when one is configured)."},
@@ -42,11 +45,12 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     422: {"model": m.ErrorBody, "description": "Invalid input."},
 }
 #: Added to state-changing operations (see csrf.py).
-CROSS_SITE = {403: {"model": m.ErrorBody, "description": "Refused as a possible cross-site request: an "
-                                                          "Origin that is not allowed, or neither a JSON "
-                                                          "body nor the X-M2S2HIL header."}}
-NOT_FOUND = {404: {"model": m.ErrorBody, "description": "No such session (or frame)."}}
-CONFLICT = {409: {"model": m.ErrorBody,
+CROSS_SITE: Responses = {403: {
+    "model": m.ErrorBody,
+    "description": "Refused as a possible cross-site request: an Origin that is not allowed, or neither "
+                   "a JSON body nor the X-M2S2HIL header."}}
+NOT_FOUND: Responses = {404: {"model": m.ErrorBody, "description": "No such session (or frame)."}}
+CONFLICT: Responses = {409: {"model": m.ErrorBody,
                   "description": "The session's or the daemon's state does not allow it."}}
 
 SessionId = Annotated[str, Path(pattern=m.SESSION_ID_PATTERN, max_length=128,
@@ -61,7 +65,7 @@ async def get_manager(request: Request) -> SessionManager:
     manager = request.app.state.manager
     if manager is None:  # only the schema-export app has none
         raise Conflict("this application was built without a rig (schema export only)")
-    return manager  # type: ignore[no-any-return]
+    return manager
 
 
 Manager = Annotated[SessionManager, Depends(get_manager)]
@@ -82,6 +86,19 @@ async def require_token(request: Request,
     if not token_matches(cred.credentials, expected):
         raise HTTPException(401, "invalid bearer token",
                             headers={"WWW-Authenticate": 'Bearer realm="m2s2hil", error="invalid_token"'})
+
+
+async def marked_request(
+    x_m2s2hil: Annotated[Literal["1"], Header(alias="X-M2S2HIL", description=(
+        "Marks a request without a body as sent by a script, which a web page cannot send to "
+        "another site without asking first (see docs/security.md)."))],
+) -> None:
+    """Declares the header on the operations without a body (the check itself is csrf.py's,
+    which runs first and answers 403)."""
+
+
+#: Dependencies of every state-changing operation without a body.
+MARKED = [Depends(marked_request)]
 
 
 def links(sid: str) -> dict[str, str]:

@@ -7,14 +7,21 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from m2s2hil.plan import Sweep
+
 Degrees = Annotated[float, Field(ge=-3600.0, le=3600.0, allow_inf_nan=False)]
-Exposure = Annotated[float, Field(gt=0.0, le=60.0, allow_inf_nan=False)]
-Gain = Annotated[float, Field(ge=0.0, le=64.0, allow_inf_nan=False)]
+#: The TOUCAN's ExposureTime range (100 µs to 5 s in its GenICam description) and Gain range
+#: (a factor of 1 to 16); a camera with narrower ones refuses the rest.
+EXPOSURE_RANGE = (1e-4, 5.0)
+GAIN_RANGE = (1.0, 16.0)
+Exposure = Annotated[float, Field(ge=EXPOSURE_RANGE[0], le=EXPOSURE_RANGE[1], allow_inf_nan=False)]
+Gain = Annotated[float, Field(ge=GAIN_RANGE[0], le=GAIN_RANGE[1], allow_inf_nan=False)]
 Note = Annotated[str, Field(max_length=200)]
 
 
 class _In(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # strict: a number given as a string ("1") is refused, as the schema says
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 class Jog(_In):
@@ -28,7 +35,7 @@ class GoTo(_In):
 class Lamps(_In):
     """Either a lighting preset (``null``: every lamp off) or the lamps to have on."""
 
-    preset: str | None = Field(default=None, max_length=64)
+    preset: Literal["weak", "strong", "directional"] | None = None
     lamps: list[Annotated[str, Field(max_length=64)]] | None = Field(default=None, max_length=64)
 
 
@@ -85,11 +92,16 @@ class SnapshotIn(_In):
     gain: Gain | None = None
 
 
+class ExposureGain(_In):
+    exposure_s: Exposure
+    gain: Gain = 1.0
+
+
 class DarksIn(_In):
     """The (exposure, gain) pairs to take darks at: given, or those a plan uses."""
 
-    exposures: list[tuple[Exposure, Gain]] | None = Field(default=None, max_length=32)
-    plan: dict[str, Any] | None = Field(default=None, description="A session plan (as POST /sessions takes).")
+    exposures: list[ExposureGain] | None = Field(default=None, max_length=32)
+    plan: Sweep | None = Field(default=None, description="A session plan (as POST /sessions takes).")
     n_frames: Annotated[int, Field(ge=1, le=64)] | None = None
     lens_capped: bool = Field(False, description="The operator confirms the lens cap is on (a real rig).")
 
@@ -99,7 +111,7 @@ class WhiteIn(_In):
     gain: Gain = 1.0
     n_frames: Annotated[int, Field(ge=1, le=64)] = 8
     reflectance: Annotated[float, Field(gt=0.0, le=1.5)] = 0.99
-    lighting: str | None = Field(default=None, max_length=64)
+    lighting: Literal["weak", "strong", "directional"] | None = None
     panel_in_place: bool = Field(False, description="The operator confirms the white panel fills the view.")
 
 

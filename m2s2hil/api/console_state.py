@@ -14,6 +14,7 @@ from fastapi import Depends, HTTPException, Request
 
 from m2s2hil.drivers.errors import DeviceError
 from m2s2hil.drivers.interfaces import Frame
+from m2s2hil.errors import UsageError
 from m2s2hil.processing.dark import DarkLibrary
 from m2s2hil.rig.live_view import LiveSettings, LiveStream, LiveViewBusy
 from m2s2hil.rig.manual import ManualControl
@@ -118,3 +119,16 @@ def device_errors(what: str) -> Iterator[None]:
         yield
     except DeviceError as exc:
         raise HTTPException(503, f"{what} failed: {exc}") from None
+
+
+def check_camera_range(pairs: list[tuple[float, float]]) -> None:
+    """Exposures and gains a plan asks for, held against the camera's range before it is asked
+    (a plan may name exposures the camera cannot make: that is the plan's fault, not a device's)."""
+    from . import console_models as cm
+
+    lo_e, hi_e = cm.EXPOSURE_RANGE
+    lo_g, hi_g = cm.GAIN_RANGE
+    for exposure, gain in pairs:
+        if not (lo_e <= exposure <= hi_e and lo_g <= gain <= hi_g):
+            raise UsageError(f"body.plan: exposure {exposure:g} s at gain {gain:g} is outside the camera's "
+                             f"range ({lo_e:g}–{hi_e:g} s, gain {lo_g:g}–{hi_g:g})")

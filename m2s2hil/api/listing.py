@@ -16,10 +16,11 @@ from .errors import Conflict, UnknownSession
 from .jobqueue import Job
 
 
-def open_store(root: Path, session_id: str, clock: Clock) -> SessionStore:
+def open_store(root: Path, session_id: str, clock: Clock,
+               mode: Literal["read", "write"] = "read") -> SessionStore:
     """Open a stored session (the caller closes it); :class:`UnknownSession` when there is none."""
     try:
-        return SessionStore.open(root, session_id, clock=clock)
+        return SessionStore.open(root, session_id, clock=clock, mode=mode)
     except SessionNotFound:
         raise UnknownSession(f"no session {session_id!r}") from None
 

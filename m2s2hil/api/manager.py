@@ -3,7 +3,9 @@
 :class:`SessionManager` owns the opened :class:`~m2s2hil.rig.opened.Rig` and the data root.
 ``submit(sweep)`` checks the plan against the rig, creates the session folder (state
 ``queued``) and queues it; a dispatcher thread starts the next session when the rig is
-free, one :class:`~m2s2hil.engine.runner.Engine` at a time. The queue is visible
+free, one :class:`~m2s2hil.engine.runner.Engine` at a time, built by
+:func:`~m2s2hil.engine.build.build_run` exactly as ``capture`` builds its run (so daemon
+sessions get the same processing and capture-time QC). The queue is visible
 (:meth:`queue`) and cancellable (``control(id, "abort")`` on a queued session).
 
 Conflicts and what they get (the API maps these to HTTP codes):
@@ -37,12 +39,13 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any, Literal
 
+from m2s2hil.engine.build import RigChanged, build_run, check_rig_digest
 from m2s2hil.engine.fault_policy import FaultPolicy
-from m2s2hil.engine.runner import Engine
+from m2s2hil.engine.options import EngineOptions
 from m2s2hil.engine.state import EngineEvent, RunState, SessionFinished
 from m2s2hil.plan import Sweep
 from m2s2hil.rig.opened import Rig
@@ -79,7 +82,7 @@ class SessionManager:
         queue_limit: int = 16,
         max_plan_frames: int = 20_000,
         policy: FaultPolicy | None = None,
-        engine_options: dict[str, Any] | None = None,
+        engine_options: EngineOptions | None = None,
         metrics: Metrics | None = None,
         keep_finished: int = 32,
         estop_grace_s: float = 0.5,
@@ -91,7 +94,7 @@ class SessionManager:
         self.queue_limit = queue_limit
         self.max_plan_frames = max_plan_frames
         self.policy = policy
-        self.engine_options = dict(engine_options or {})
+        self.engine_options = engine_options
         self.metrics = metrics or Metrics()
         self.keep_finished = keep_finished
         self.estop_grace_s = estop_grace_s
@@ -111,6 +114,8 @@ class SessionManager:
         self._lockfile: IO[str] | None = root_lock  # from lock_data_root(), or taken by start()
         self._shutdown_reason: str | None = None
         self._closed: dict | None = None
+        #: Called with the rig, holding the device lock, just before a session's engine starts.
+        self.before_session: list[Callable[[Rig], None]] = []
 
         self.metrics.gauge("m2s2hil_queue_depth", "Items waiting: sessions for the rig, frames in the "
                            "running session's processing pipeline.", self._queue_gauges)
@@ -208,6 +213,9 @@ class SessionManager:
         else:
             log.error("rig NOT confirmed safe: lamps on %s, moving %s, errors %s", check.lamps_on,
                       check.moving, errors)
+        for j in list(self._queue.jobs.values()):  # their owner locks go with the daemon
+            with contextlib.suppress(Exception):
+                j.store.close()
         if self._lockfile is not None:
             unlock_data_root(self._lockfile)
             self._lockfile = None
@@ -236,11 +244,10 @@ class SessionManager:
                     if self._closing:
                         return
                     cur = self._current
-                    if cur is not None and cur.engine is not None and not cur.finished.is_set():
-                        thread = getattr(cur.engine, "_thread", None)
-                        if thread is not None and not thread.is_alive() and cur.engine.state.terminal:
-                            self._finish(cur, cur.engine.state.value)  # finished without its event
-                            continue
+                    eng = cur.engine if cur is not None and not cur.finished.is_set() else None
+                    if cur is not None and eng is not None and not eng.alive and eng.state.terminal:
+                        self._finish(cur, eng.state.value)  # finished without its event
+                        continue
                     if self._current is None and self._queue and not self._held:
                         job = self._queue.pop_next()
                         self._current = job
@@ -259,7 +266,8 @@ class SessionManager:
 
     def _launch(self, job: Job) -> None:
         runs = sum(1 for e in job.store.events() if e.get("kind") == "run_started")
-        engine = Engine(self.rig, job.store, policy=self.policy, **self.engine_options)
+        # The same builder as `capture`: processing, capture-time QC, the fault policy, the rig check.
+        engine = build_run(self.rig, store=job.store, options=self.engine_options, policy=self.policy)
         engine.subscribe(self.metrics.observe)
         engine.subscribe(lambda ev, job=job: self._on_event(job, ev))
         with self._cond:
@@ -272,6 +280,11 @@ class SessionManager:
             job.run = runs + 1
             job.state = "running"
             with self._hw:
+                for hook in self.before_session:  # e.g. the console's live view stops streaming
+                    try:
+                        hook(self.rig)
+                    except Exception as exc:
+                        log.warning("before-session hook failed: %s", exc)
                 engine.start()
         log.info("session %s started (run %d, %d planned events)", job.session_id, job.run, job.planned)
 
@@ -287,6 +300,8 @@ class SessionManager:
         """Caller holds the lock."""
         if not job.mark_finished(state):
             return
+        with contextlib.suppress(Exception):
+            job.store.release_ownership()  # readable still; a resume (here or elsewhere) may own it
         if self._current is job:
             self._current = None
         self._queue.retire(job, self.keep_finished)
@@ -296,7 +311,7 @@ class SessionManager:
     def submit(self, sweep: Sweep) -> Job:
         """Check the plan against the rig and the disk, create the session and queue it."""
         cfg = self.rig.config
-        planned, need = check_sweep(sweep, cfg, self.max_plan_frames)
+        planned, need = check_sweep(sweep, cfg, self.max_plan_frames, root=self.root)
         with self._submit_lock:
             self._check_accepting()
             with self._lock:
@@ -337,12 +352,10 @@ class SessionManager:
                                     f"(limit {self.queue_limit})")
             store = self._open(session_id)
             try:
-                if store.rig_digest != self.rig.config.digest:
-                    raise Conflict(
-                        f"session {session_id} was captured with a different rig configuration "
-                        f"(digest {store.rig_digest[:12]}…, this rig {self.rig.config.digest[:12]}…); "
-                        "resume it with the rig it was started on"
-                    )
+                try:
+                    check_rig_digest(store, self.rig.config)
+                except RigChanged as exc:
+                    raise Conflict(str(exc)) from None
                 planned = self._planned.of(store)
                 was = store.state
                 store.record_event("requeued", {"reason": reason, "was": was})
@@ -374,11 +387,14 @@ class SessionManager:
         if job is not None and job.engine is not None and not job.finished.is_set():
             request(job.engine, action, raise_errors=True)
             return self.status(session_id)
-        if job is not None:
+        if job is not None and not (action == "resume" and job.finished.is_set()):
             state = self.status(session_id)["state"]
             raise Conflict(f"session {session_id} is {state}: there is nothing to {action}")
         info = self._disk_status(session_id)
         state = info["state"]
+        if action == "resume" and state == "estopped" and self._held == "emergency stop":
+            raise Conflict(f"session {session_id} was stopped by the emergency stop, which is not cleared: "
+                           "make the rig safe, clear it with POST /queue/release, then resume")
         if action == "resume" and state in RESUMABLE_BY_HAND:
             self._enqueue_existing(session_id, reason="resumed by the operator")
             return self.status(session_id)
@@ -443,6 +459,9 @@ class SessionManager:
         check, errors = estop.stop_rig(self.rig, self._hw, job, grace_s=self.estop_grace_s,
                                        timeout_s=self.estop_timeout_s)
         eng = job.engine if job is not None else None
+        if job is not None and eng is not None and eng.state is RunState.ABORTED:
+            job.finished.wait(5.0)  # its run has given the session's owner lock back
+            self._mark_estopped(job.session_id, check)
         return {
             "safe": check.safe, "lamps_on": check.lamps_on, "moving": check.moving,
             "session_id": job.session_id if job else None,
@@ -451,9 +470,42 @@ class SessionManager:
             "elapsed_s": time.monotonic() - t0,
         }
 
+    def _mark_estopped(self, session_id: str, check: SafeCheck) -> None:
+        """``estopped``, not ``aborted``: the operator did not give the capture up, so it may be
+        resumed once the stop is cleared (POST /queue/release), never before."""
+        try:
+            store = self._open(session_id)
+            try:
+                store.record_event("estopped", {"rig_safe": check.safe, "lamps_on": check.lamps_on})
+                store.set_state("estopped")
+            finally:
+                store.close()
+        except Exception as exc:
+            log.error("could not mark session %s as e-stopped: %s", session_id, exc)
+
     def check_safe(self) -> SafeCheck:
         """Read the devices back: which lamps are on, which axis moves."""
         return estop.check_safe(self.rig)
+
+    @contextlib.contextmanager
+    def manual_access(self, what: str = "manual control") -> Iterator[Rig]:
+        """The rig for one short conversation from a request thread (jog, lamps, a live-view
+        frame, a calibration capture); :class:`Conflict` while a session owns it (running,
+        paused or starting). Holding ``_hw`` keeps the dispatcher from starting a session
+        meanwhile; the emergency stop still switches the lamps off without it."""
+        with self._lock:
+            cur = self._current
+            if cur is not None:
+                raise Conflict(f"{what} is refused while session {cur.session_id} owns the rig "
+                               f"({cur.state}); pause does not release it: abort the session or wait "
+                               "for it to end")
+            if self._closing:
+                raise Conflict("the daemon is shutting down")
+            self._hw.acquire()
+        try:
+            yield self.rig
+        finally:
+            self._hw.release()
 
     # ================================================================== queries
     def running_id(self) -> str | None:
@@ -493,7 +545,8 @@ class SessionManager:
         return queued_status(job, pos)
 
     def _open(self, session_id: str) -> SessionStore:
-        return listing.open_store(self.root, session_id, self.rig.clock)
+        """Open for writing (owner lock held): the daemon requeues, aborts and resumes it."""
+        return listing.open_store(self.root, session_id, self.rig.clock, mode="write")
 
     def _disk_status(self, session_id: str) -> dict:
         return disk_status(self.root, session_id, self.rig.clock, self._planned)

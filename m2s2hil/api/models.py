@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -15,7 +15,7 @@ SESSION_ID_PATTERN = SESSION_ID_RE.pattern
 #: queued), ``interrupted`` (parked by a daemon shutdown), ``corrupt`` (unreadable journal).
 SessionState = Literal[
     "created", "queued", "idle", "running", "pausing", "paused", "aborting", "completed", "failed",
-    "aborted", "cancelled", "interrupted", "corrupt",
+    "aborted", "cancelled", "interrupted", "corrupt", "completed_with_gaps", "estopped", "damaged",
 ]
 _STATE_DOC = "One of: " + ", ".join(SessionState.__args__) + " (see docs/api.md)."
 
@@ -69,6 +69,7 @@ class SessionStatus(_Out):
     last_frame_index: int | None = None
     last_event_id: str | None = None
     faults: list[FaultOut] = Field(default_factory=list)
+    fault_count: int = Field(0, description="Every fault met (``faults`` lists the last 50).")
     pause_reason: str | None = None
     error: str | None = None
     efficiency: float | None = None
@@ -175,6 +176,3 @@ class Health(_Out):
     uptime_s: float
 
 
-class PageParams(_Out):
-    offset: Annotated[int, Field(ge=0)] = 0
-    limit: Annotated[int, Field(ge=1, le=500)] = 50

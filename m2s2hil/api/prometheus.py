@@ -1,7 +1,7 @@
-"""Daemon metrics in the Prometheus text exposition format (version 0.0.4).
+"""Daemon metrics for Prometheus, kept in a ``prometheus_client`` registry of their own.
 
-Counters and histograms are fed from the engines' events (:meth:`Metrics.observe`);
-gauges (queue depths, running sessions, pipeline depth) are read at scrape time from
+Counters and the histogram are fed from the engines' events (:meth:`Metrics.observe`);
+gauges (queue depths, running sessions, the queue hold) are read at scrape time from
 callables the manager registers. Kept to the few series an operator alerts on:
 
 - ``m2s2hil_frames_captured_total``: frames stored by this daemon.
@@ -13,116 +13,98 @@ callables the manager registers. Kept to the few series an operator alerts on:
   session's processing pipeline (``pipeline``).
 - ``m2s2hil_sessions_running``, ``m2s2hil_queue_held``, ``m2s2hil_sse_clients``,
   ``m2s2hil_emergency_stops_total``.
+
+Each :class:`Metrics` has its own ``CollectorRegistry`` (not the process-wide default), so
+several daemons in one process (the tests) never share counts.
 """
 
 from __future__ import annotations
 
-import math
-import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+
+import prometheus_client
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.core import GaugeMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4
 
 from m2s2hil.engine.fault_policy import FAULT_CLASSES
 from m2s2hil.engine.state import EngineEvent, FaultRecorded, FrameStored, SessionFinished
 
-CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+CONTENT_TYPE = CONTENT_TYPE_PLAIN_0_0_4
 DURATION_BUCKETS = (10.0, 60.0, 300.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
-FINAL_STATES = ("completed", "aborted", "failed")
+FINAL_STATES = ("completed", "completed_with_gaps", "aborted", "failed")
+
+# No ``*_created`` series: a counter's creation time only doubles the series count here.
+prometheus_client.disable_created_metrics()
+
+GaugeReader = Callable[[], dict[tuple[tuple[str, str], ...], float]]
 
 
-def _escape(v: str) -> str:
-    return v.replace("\\", "\\\\").replace("\n", "\\n").replace('"', '\\"')
+class _ScrapeTimeGauges:
+    """Gauges whose values are read when Prometheus scrapes (a custom collector)."""
 
-
-def _num(x: float) -> str:
-    if math.isinf(x):
-        return "+Inf" if x > 0 else "-Inf"
-    if math.isnan(x):
-        return "NaN"
-    return repr(float(x)) if not float(x).is_integer() else str(int(x))
-
-
-def _labels(labels: dict[str, str]) -> str:
-    if not labels:
-        return ""
-    return "{" + ",".join(f'{k}="{_escape(v)}"' for k, v in labels.items()) + "}"
-
-
-class Metrics:
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self.frames = 0
-        self.faults = dict.fromkeys(FAULT_CLASSES, 0)
-        self.finished = dict.fromkeys(FINAL_STATES, 0)
-        self.estops = 0
-        self.sse_clients = 0
-        self._buckets = [0] * len(DURATION_BUCKETS)
-        self._dur_sum = 0.0
-        self._dur_count = 0
-        self._gauges: dict[str, tuple[str, Callable[[], dict[tuple[tuple[str, str], ...], float]]]] = {}
+        self.gauges: dict[str, tuple[str, GaugeReader]] = {}
 
-    # ------------------------------------------------------------------ feeding
-    def observe(self, ev: EngineEvent) -> None:
-        """Engine event subscriber (called in the engine's thread: cheap and lock-short)."""
-        with self._lock:
-            if isinstance(ev, FrameStored):
-                self.frames += 1
-            elif isinstance(ev, FaultRecorded):
-                fc = ev.fault.fault_class
-                self.faults[fc] = self.faults.get(fc, 0) + 1
-            elif isinstance(ev, SessionFinished):
-                st = ev.state.value
-                self.finished[st] = self.finished.get(st, 0) + 1
-                d = max(0.0, float(ev.duration_s))
-                self._dur_sum += d
-                self._dur_count += 1
-                for i, le in enumerate(DURATION_BUCKETS):
-                    if d <= le:
-                        self._buckets[i] += 1
-
-    def count_estop(self) -> None:
-        with self._lock:
-            self.estops += 1
-
-    def sse_delta(self, n: int) -> None:
-        with self._lock:
-            self.sse_clients += n
-
-    def gauge(self, name: str, help_text: str,
-              read: Callable[[], dict[tuple[tuple[str, str], ...], float]]) -> None:
-        """Register a gauge read at scrape time: ``read()`` -> {label pairs: value}."""
-        self._gauges[name] = (help_text, read)
-
-    # ------------------------------------------------------------------ exposition
-    def render(self) -> str:
-        out: list[str] = []
-
-        def family(name: str, kind: str, help_text: str,
-                   samples: list[tuple[str, dict[str, str], float]]) -> None:
-            out.append(f"# HELP {name} {help_text}")
-            out.append(f"# TYPE {name} {kind}")
-            for suffix, labels, value in samples:
-                out.append(f"{name}{suffix}{_labels(labels)} {_num(value)}")
-
-        with self._lock:
-            frames, faults, finished = self.frames, dict(self.faults), dict(self.finished)
-            buckets, dsum, dcount = list(self._buckets), self._dur_sum, self._dur_count
-            estops, sse = self.estops, self.sse_clients
-        family("m2s2hil_frames_captured_total", "counter", "Frames stored by this daemon.",
-               [("", {}, frames)])
-        family("m2s2hil_faults_total", "counter", "Faults met by the capture engine, by fault class.",
-               [("", {"fault_class": fc}, n) for fc, n in sorted(faults.items())])
-        family("m2s2hil_sessions_finished_total", "counter", "Session runs that ended, by final state.",
-               [("", {"state": st}, n) for st, n in sorted(finished.items())])
-        hist = [("_bucket", {"le": _num(le)}, c) for le, c in zip(DURATION_BUCKETS, buckets, strict=True)]
-        hist += [("_bucket", {"le": "+Inf"}, dcount), ("_sum", {}, dsum), ("_count", {}, dcount)]
-        family("m2s2hil_session_duration_seconds", "histogram",
-               "Active duration of finished session runs (engine clock, pauses excluded).", hist)
-        family("m2s2hil_emergency_stops_total", "counter", "Emergency stops requested.", [("", {}, estops)])
-        family("m2s2hil_sse_clients", "gauge", "Open event streams.", [("", {}, sse)])
-        for name, (help_text, read) in sorted(self._gauges.items()):
+    def collect(self) -> Iterator[Metric]:
+        for name, (help_text, read) in sorted(self.gauges.items()):
             try:
                 values = read()
             except Exception:  # a gauge that cannot be read is left out, not fatal to the scrape
                 continue
-            family(name, "gauge", help_text, [("", dict(k), v) for k, v in values.items()])
-        return "\n".join(out) + "\n"
+            labels = sorted({k for pairs in values for k, _ in pairs})
+            family = GaugeMetricFamily(name, help_text, labels=labels)
+            for pairs, value in values.items():
+                given = dict(pairs)
+                family.add_metric([given.get(k, "") for k in labels], float(value))
+            yield family
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        reg = self.registry
+        self._frames = Counter("m2s2hil_frames_captured", "Frames stored by this daemon.", registry=reg)
+        self._faults = Counter("m2s2hil_faults", "Faults met by the capture engine, by fault class.",
+                               ["fault_class"], registry=reg)
+        for fc in FAULT_CLASSES:
+            self._faults.labels(fc)
+        self._finished = Counter("m2s2hil_sessions_finished", "Session runs that ended, by final state.",
+                                 ["state"], registry=reg)
+        for st in FINAL_STATES:
+            self._finished.labels(st)
+        self._duration = Histogram(
+            "m2s2hil_session_duration_seconds",
+            "Active duration of finished session runs (engine clock, pauses excluded).",
+            buckets=DURATION_BUCKETS, registry=reg,
+        )
+        self._estops = Counter("m2s2hil_emergency_stops", "Emergency stops requested.", registry=reg)
+        self._sse = Gauge("m2s2hil_sse_clients", "Open event streams.", registry=reg)
+        self._scrape_time = _ScrapeTimeGauges()
+        reg.register(self._scrape_time)
+
+    # ------------------------------------------------------------------ feeding
+    def observe(self, ev: EngineEvent) -> None:
+        """Engine event subscriber (called in the engine's thread: cheap, no I/O)."""
+        if isinstance(ev, FrameStored):
+            self._frames.inc()
+        elif isinstance(ev, FaultRecorded):
+            self._faults.labels(ev.fault.fault_class).inc()
+        elif isinstance(ev, SessionFinished):
+            self._finished.labels(ev.state.value).inc()
+            self._duration.observe(max(0.0, float(ev.duration_s)))
+
+    def count_estop(self) -> None:
+        self._estops.inc()
+
+    def sse_delta(self, n: int) -> None:
+        self._sse.inc(n)
+
+    def gauge(self, name: str, help_text: str, read: GaugeReader) -> None:
+        """Register a gauge read at scrape time: ``read()`` -> {label pairs: value}."""
+        self._scrape_time.gauges[name] = (help_text, read)
+
+    # ------------------------------------------------------------------ exposition
+    def render(self) -> str:
+        """The registry in the Prometheus text format 0.0.4."""
+        return generate_latest(self.registry).decode("utf-8")

@@ -11,7 +11,7 @@ import shutil
 from typing import Any, Literal
 
 from fastapi import APIRouter
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, Response
 from pydantic import BaseModel, ConfigDict
 
 from .common import CONFLICT, CROSS_SITE, NOT_FOUND, Manager, SessionId
@@ -32,8 +32,8 @@ class ExportIn(BaseModel):
     overwrite: bool = False
 
 
-@router.get("/sessions/{session_id}/report.html", response_class=HTMLResponse,
-            responses={**NOT_FOUND, **CONFLICT})
+@router.get("/sessions/{session_id}/report.html", response_class=Response,
+            responses={200: {"content": {"text/html": {}}}, **NOT_FOUND, **CONFLICT})
 def session_report(mg: Manager, session_id: SessionId) -> HTMLResponse:
     """The session's QC report and contact sheet (HTML, self-contained), rendered for this request."""
     from m2s2hil.analysis.report_html import collect_views, render

@@ -14,7 +14,6 @@ from typing import Any
 from fastapi import APIRouter
 
 from m2s2hil.errors import UsageError
-from m2s2hil.plan import Sweep
 from m2s2hil.rig.calibrate import (
     capture_dark_library,
     capture_white_reference,
@@ -23,8 +22,10 @@ from m2s2hil.rig.calibrate import (
 )
 
 from . import console_models as cm
+from .admission import EXPANDING, planned_frame_count
 from .common import CONFLICT, CROSS_SITE, Manager
-from .console_state import ConsoleDep, device_errors
+from .console_state import ConsoleDep, check_camera_range, device_errors
+from .errors import PlanTooLarge
 
 router = APIRouter(tags=["calibration"])
 
@@ -58,9 +59,14 @@ def take_darks(mg: Manager, console: ConsoleDep, body: cm.DarksIn) -> dict[str, 
     with mg.manual_access("taking darks") as rig, device_errors("the dark capture"):
         console.camera.release(rig)
         if body.exposures:
-            pairs = [(float(e), float(g)) for e, g in body.exposures]
+            pairs = [(e.exposure_s, e.gain) for e in body.exposures]
         elif body.plan is not None:
-            pairs = sweep_exposures(Sweep.model_validate(body.plan), rig)
+            if planned_frame_count(body.plan) > mg.max_plan_frames:  # before expanding it
+                raise PlanTooLarge(f"body.plan: more than {mg.max_plan_frames} frames; the darks of a plan "
+                                   "this daemon would run are wanted")
+            with EXPANDING:
+                pairs = sweep_exposures(body.plan, rig)
+            check_camera_range(pairs)
         else:
             raise UsageError("body: give exposures ([[exposure_s, gain], …]) or a plan")
         entries = capture_dark_library(rig, console.darks, pairs, n_frames=body.n_frames)

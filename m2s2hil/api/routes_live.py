@@ -18,7 +18,7 @@ from typing import Annotated
 import cv2
 import numpy as np
 from fastapi import APIRouter, Query
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 
 from . import console_models as cm
 from .common import CROSS_SITE
@@ -43,7 +43,7 @@ def _part(jpeg: bytes, headers: dict[str, str]) -> bytes:
             ).encode("ascii") + jpeg + b"\r\n"
 
 
-@router.get("/camera/live.mjpeg", response_class=StreamingResponse,
+@router.get("/camera/live.mjpeg", response_class=Response,
             responses={200: {"content": {f"multipart/x-mixed-replace; boundary={BOUNDARY}": {}},
                              "description": "JPEG frames; each part has an X-Live-Stats header (JSON)."}})
 def live_stream(

@@ -18,7 +18,7 @@ from m2s2hil.errors import UsageError
 from m2s2hil.rig.manual import ManualControl
 
 from . import console_models as cm
-from .common import CONFLICT, CROSS_SITE, Manager
+from .common import CONFLICT, CROSS_SITE, MARKED, Manager
 from .console_state import ConsoleDep, device_errors
 from .errors import Conflict
 from .logsafe import clean_text
@@ -104,7 +104,8 @@ def go_to(mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
     return _moved(mg, axis, target)
 
 
-@router.post("/rig/axes/{axis}/stop", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE})
+@router.post("/rig/axes/{axis}/stop", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE},
+             dependencies=MARKED)
 def stop_axis(mg: Manager, axis: AxisName = AxisPath) -> dict:
     """Stop this axis (use ``POST /rig/stop`` to stop everything and switch the lamps off)."""
     with mg.manual_access() as rig, device_errors(f"stopping the {axis}"):
@@ -113,7 +114,8 @@ def stop_axis(mg: Manager, axis: AxisName = AxisPath) -> dict:
     return {"axis": axis, "target_deg": pos, "position_deg": pos, "moving": False}
 
 
-@router.post("/rig/axes/{axis}/home", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE})
+@router.post("/rig/axes/{axis}/home", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE},
+             dependencies=MARKED)
 def home_axis(mg: Manager, console: ConsoleDep, axis: AxisName = AxisPath) -> dict:
     """Home the axis on its switches (axes whose policy is ``switches``; others set an origin)."""
     if mg.rig.config.axes[axis].homing != "switches":
@@ -126,7 +128,8 @@ def home_axis(mg: Manager, console: ConsoleDep, axis: AxisName = AxisPath) -> di
     return {"axis": axis, "target_deg": 0.0, "position_deg": pos, "moving": False}
 
 
-@router.post("/rig/axes/{axis}/origin", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE})
+@router.post("/rig/axes/{axis}/origin", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE},
+             dependencies=MARKED)
 def set_origin(mg: Manager, axis: AxisName = AxisPath) -> dict:
     """Make where the axis stands its origin (0°), for axes without homing switches."""
     from m2s2hil.rig.open_errors import RigOpenError

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from . import models as m
-from .common import CROSS_SITE, Manager
+from .common import CROSS_SITE, MARKED, Manager
 
 router = APIRouter(tags=["rig"])
 
@@ -16,7 +16,8 @@ def get_rig(mg: Manager) -> dict:
     return mg.rig_state()
 
 
-@router.post("/rig/stop", response_model=m.StopReport, responses=CROSS_SITE)
+@router.post("/rig/stop", response_model=m.StopReport,
+             responses=CROSS_SITE, dependencies=MARKED)
 def emergency_stop(mg: Manager) -> dict:
     """Emergency stop: lamps off and motion stopped now, even during a session (which is aborted);
     the queue is held until POST /queue/release."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Body, Header, Query, Response
 from sse_starlette import EventSourceResponse
@@ -11,7 +11,18 @@ from sse_starlette import EventSourceResponse
 from m2s2hil.plan import Sweep
 
 from . import models as m
-from .common import CONFLICT, CROSS_SITE, NOT_FOUND, Limit, Manager, Offset, SessionId, links, status_out
+from .common import (
+    CONFLICT,
+    CROSS_SITE,
+    MARKED,
+    NOT_FOUND,
+    Limit,
+    Manager,
+    Offset,
+    SessionId,
+    links,
+    status_out,
+)
 from .sse import session_events
 
 router = APIRouter(tags=["sessions"])
@@ -73,6 +84,7 @@ def _control(action: Literal["pause", "resume", "abort"], doc: str) -> None:
     endpoint.__doc__ = doc
     router.add_api_route(f"/sessions/{{session_id}}/{action}", endpoint, methods=["POST"],
                          response_model=m.SessionStatus, name=f"{action}_session",
+                         dependencies=MARKED,
                          responses={**NOT_FOUND, **CONFLICT, **CROSS_SITE})
 
 
@@ -80,8 +92,15 @@ _control("pause", "Park the running session at its next safe boundary (lamps off
 _control("resume", "Continue a paused session; an interrupted one (not running here) is queued again.")
 _control("abort", "End the running session at its next safe boundary; a queued one is cancelled.")
 
-SSE_DOC = {"content": {"text/event-stream": {"schema": {"type": "string", "format": "event-stream"}}},
-           "description": "Server-Sent Events; see docs/api.md."}
+#: Each message of the stream (OpenAPI 3.1: the schema of a text/event-stream describes one event).
+SSE_MESSAGE = {"type": "object", "title": "SseMessage", "properties": {
+    "event": {"type": "string", "description": "state, progress, frame, fault, finished, queued, gap, end"},
+    "data": {"type": "string", "description": "One JSON object."},
+    "id": {"type": "string", "description": "<run>-<seq>, or j-<n> for a journal replay; absent on "
+                                            "queued, gap and end."},
+    "retry": {"type": "integer"}}}
+SSE_DOC: dict[str, Any] = {"content": {"text/event-stream": {"schema": SSE_MESSAGE}},
+           "description": "Server-Sent Events, one message per event; see docs/api.md."}
 
 
 @router.get("/sessions/{session_id}/events", response_class=EventSourceResponse,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException, Path, Query
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response
 
 from m2s2hil.rig.snapshots import (
     FILES,
@@ -53,7 +53,7 @@ def get_snapshot(mg: Manager, snapshot_id: SnapshotId) -> dict[str, Any]:
         raise HTTPException(404, str(exc)) from None
 
 
-@router.get("/snapshots/{snapshot_id}/{name}", response_class=FileResponse,
+@router.get("/snapshots/{snapshot_id}/{name}", response_class=Response,
             responses={200: {"content": {t: {} for t in FILES.values()}},
                        404: {"description": "No such file."}})
 def download_snapshot(mg: Manager, snapshot_id: SnapshotId,

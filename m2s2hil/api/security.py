@@ -5,8 +5,11 @@
   ``M2S2HIL_TOKEN``) of at least :data:`MIN_TOKEN_LENGTH` characters; without one the
   daemon refuses to start (:class:`InsecureListen`).
 - When a token is configured every endpoint but ``/healthz`` wants
-  ``Authorization: Bearer <token>``; it is compared in constant time
-  (:func:`secrets.compare_digest`) so the time to reject says nothing about the token.
+  ``Authorization: Bearer <token>`` (:func:`m2s2hil.api.common.require_token`); it is
+  compared in constant time (:func:`secrets.compare_digest`) so the time to reject says
+  nothing about the token.
+- The Host allow-list (:mod:`.hosts`) and the cross-site guard (:mod:`.csrf`) stand in
+  front of every route.
 - :class:`BodyLimit` rejects request bodies above a size with 413, by ``Content-Length``
   before reading and by counting for chunked bodies.
 """
@@ -19,15 +22,9 @@ import secrets
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
-from fastapi import Depends, HTTPException
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-
 from m2s2hil.errors import ConfigError
 
 MIN_TOKEN_LENGTH = 16
-
-# Re-exported name the check goes through (tests watch it to prove the comparison is constant-time).
-compare_digest = secrets.compare_digest
 
 
 class InsecureListen(ConfigError):
@@ -68,27 +65,7 @@ def check_listen(host: str, token: str | None, source: str = "serve") -> None:
 
 def token_matches(given: str, expected: str) -> bool:
     """Constant-time comparison of the UTF-8 bytes (length differences leak only the length)."""
-    return compare_digest(given.encode("utf-8"), expected.encode("utf-8"))
-
-
-_bearer = HTTPBearer(auto_error=False, description="Required when the daemon has a token configured.")
-
-
-def bearer_guard(expected: str | None) -> Callable[..., Awaitable[None]]:
-    """A FastAPI dependency enforcing ``expected`` (no-op when None). Declared on every
-    protected route so the OpenAPI schema documents the scheme."""
-
-    async def guard(cred: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> None:
-        if expected is None:
-            return
-        if cred is None:
-            raise HTTPException(401, "missing bearer token (Authorization: Bearer <token>)",
-                                headers={"WWW-Authenticate": 'Bearer realm="m2s2hil"'})
-        if not token_matches(cred.credentials, expected):
-            raise HTTPException(401, "invalid bearer token",
-                                headers={"WWW-Authenticate": 'Bearer realm="m2s2hil", error="invalid_token"'})
-
-    return guard
+    return secrets.compare_digest(given.encode("utf-8"), expected.encode("utf-8"))
 
 
 Scope = MutableMapping[str, Any]

@@ -12,6 +12,7 @@ before. Example::
     token = "…"                 # or M2S2HIL_TOKEN (which wins); never on the command line
     resume_interrupted = true   # resume sessions the journal shows as interrupted
     cors_origins = []           # CORS stays off unless origins are listed
+    allowed_hosts = []          # Host names besides 127.0.0.1, localhost, [::1] (e.g. "rig-pc.lab")
     max_body_bytes = 65536
     queue_limit = 16
 """
@@ -22,10 +23,13 @@ import os
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator
 
 from m2s2hil.config import read_toml
 from m2s2hil.errors import ConfigError, validation_problem
+
+from .csrf import normalise_origin
+from .hosts import split_host
 
 TOKEN_ENV = "M2S2HIL_TOKEN"
 DEFAULT_PORT = 8750
@@ -41,6 +45,8 @@ class ServeSettings(BaseModel):
     token: SecretStr | None = None
     resume_interrupted: bool = False
     cors_origins: list[str] = Field(default_factory=list)
+    #: Names the Host header may carry besides the loopback ones (DNS-rebinding defence, hosts.py).
+    allowed_hosts: list[str] = Field(default_factory=list)
     max_body_bytes: Annotated[int, Field(ge=1024, le=16 * 1024 * 1024)] = 64 * 1024
     queue_limit: Annotated[int, Field(ge=0, le=1000)] = 16
     #: Plans with more frame events than this are refused (expanding and running them is costly).
@@ -54,6 +60,31 @@ class ServeSettings(BaseModel):
     estop_grace_s: Annotated[float, Field(ge=0, le=60)] = 0.5
     estop_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     log_level: str = "info"
+
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _hosts(cls, v: list[str]) -> list[str]:
+        for name in v:
+            if split_host(name) is None:
+                raise ValueError(f"{name!r} is not a host name (e.g. rig-pc.lab, 10.0.0.5, [fd00::5])")
+        return v
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, v: list[str]) -> list[str]:
+        for origin in v:
+            if normalise_origin(origin) is None:
+                raise ValueError(f"{origin!r} is not an origin (scheme://host[:port], e.g. http://rig-pc.lab:8750)")
+        return v
+
+    def host_names(self) -> list[str]:
+        """The Host allow-list's extra names: the configured ones, and the listening address
+        itself when it is one address (not a wildcard such as 0.0.0.0)."""
+        names = list(self.allowed_hosts)
+        if self.host not in ("0.0.0.0", "::", "[::]"):
+            bare_v6 = ":" in self.host and not self.host.startswith("[")
+            names.append(f"[{self.host}]" if bare_v6 else self.host)
+        return names
 
     def token_value(self) -> str | None:
         return self.token.get_secret_value() if self.token is not None else None

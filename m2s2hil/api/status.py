@@ -15,7 +15,7 @@ from .listing import PlannedCounts, open_store
 #: Journal states of a session that was accepted or running when its daemon went away.
 RESUMABLE = frozenset({"created", "queued", "running", "pausing", "interrupted"})
 #: … and those an operator may resume by hand (a paused session is not resumed automatically).
-RESUMABLE_BY_HAND = RESUMABLE | {"paused"}
+RESUMABLE_BY_HAND = RESUMABLE | {"paused", "estopped", "completed_with_gaps"}
 TERMINAL = frozenset({"completed", "failed", "aborted", "cancelled"})
 
 _FROM_ENGINE = ("done", "total", "skipped", "progress", "eta_s", "elapsed_s", "lighting", "elevation",
@@ -28,7 +28,7 @@ def engine_status(job: Job, engine: Engine) -> dict:
     st = engine.status().to_dict()
     out = {k: st[k] for k in _FROM_ENGINE}
     out.update(session_id=job.session_id, state=st["state"], live=True, queue_position=None,
-               lamps_on=list(st["lamps_on"]), faults=list(st["faults"])[-50:],
+               lamps_on=list(st["lamps_on"]), faults=list(st["faults"])[-50:], fault_count=st["fault_count"],
                satellite=job.store.sweep.satellite, build=job.store.sweep.build,
                created=job.store.created, resumable=False)
     return out
@@ -78,7 +78,8 @@ def disk_status(root: Path, session_id: str, clock: Clock, planned: PlannedCount
             "build": store.sweep.build, "mode": store.sweep.mode, "done": done, "total": n_planned,
             "skipped": skipped, "progress": (done + skipped) / n_planned if n_planned else 1.0,
             "elapsed_s": last_finish.get("duration_s"), "efficiency": last_finish.get("efficiency"),
-            "faults": faults[-50:], "error": error, "created": row["created"], "updated": row["updated"],
+            "faults": faults[-50:], "fault_count": len(faults), "error": error, "created": row["created"],
+            "updated": row["updated"],
             "eta_s": 0.0 if state == "completed" else None,
         }
     finally:
