@@ -31,6 +31,8 @@ COPY m2s2hil ./m2s2hil
 COPY drivers ./drivers
 COPY protocols ./protocols
 COPY simulators ./simulators
+# The runtime dependencies only: what capture and the daemon need. The `analysis` extra
+# (Dask for `evaluate`, the ground truth of `bench demosaic`) stays out of the daemon's image.
 RUN pip install --no-cache-dir .
 
 RUN useradd --create-home --uid 10001 --groups dialout m2s2 \

@@ -144,7 +144,7 @@ def capture_run(http: httpx.Client, base: str, data: Path, *, rate: float | None
                     break
                 time.sleep(0.25)
             else:
-                w.post(f"/sessions/{sid}/abort")
+                w.post(f"/sessions/{sid}/abort", headers={"X-M2S2HIL": "1"})  # see docs/security.md
         finished.set()
 
     watcher = threading.Thread(target=watch)

@@ -43,12 +43,14 @@ import numpy as np
 import psutil
 
 from m2s2hil.config import RigConfig, default_rig
+from m2s2hil.engine.build import build_run
 from m2s2hil.engine.marks import run_up_deg
+from m2s2hil.engine.options import EngineOptions
 from m2s2hil.engine.runner import Engine
+from m2s2hil.engine.state import EngineStatus
 from m2s2hil.hostinfo import describe_machine
 from m2s2hil.plan import Sweep
 from m2s2hil.rig.factory import open_simulated_rig
-from m2s2hil.store.session import SessionStore
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -94,15 +96,17 @@ class RssSampler:
                 "n": len(rss)}
 
 
-def run_session(cfg: RigConfig, sweep: Sweep, root: Path, **engine_kw) -> tuple[Engine, object, float]:
+def run_session(cfg: RigConfig, sweep: Sweep, root: Path, *, qc: bool = False,
+                options: EngineOptions | None = None) -> tuple[Engine, EngineStatus, float]:
+    """One session built as `capture` builds it (``build_run``); capture-time QC only with ``qc``
+    (the engine figures are recorded without it, `capture`'s with it)."""
     rig = open_simulated_rig(cfg)
     try:
-        store = SessionStore.create(root, sweep, cfg, clock=rig.clock)
-        engine = Engine(rig, store, sweep, **engine_kw)
+        engine = build_run(rig, root, sweep=sweep, options=options, capture_qc=qc)
         t = time.perf_counter()
         status = engine.run()
         wall = time.perf_counter() - t
-        store.close()
+        engine.store.close()
         return engine, status, wall
     finally:
         rig.close()
@@ -128,18 +132,20 @@ def bench_build(size: int, tmp: Path) -> dict:
 
 
 def bench_stream(size: int, tmp: Path, seconds: float = 60.0) -> dict:
-    from m2s2hil.simulators.toucan import GradientSource
+    from m2s2hil.simulators.toucan import GradientSource, ToucanCamera
 
     cfg = rig_config(size)
     sweep = Sweep(satellite="voyager", build="B3", lighting=["weak"], tilts=["E1"], mode="continuous",
                   dark={"frames": 1})
     speed = 350.0 / seconds  # the 36 marks span 350 deg
     rig = open_simulated_rig(cfg)
-    cam_sim = rig.extras["sims"]["toucan"]
+    cam_sim = rig.sims["toucan"]
+    assert isinstance(cam_sim, ToucanCamera)
     cam_sim.frame_source = GradientSource(size, size, cfg.camera.model.bit_depth)
     try:
-        store = SessionStore.create(tmp / "stream", sweep, cfg, clock=rig.clock)
-        engine = Engine(rig, store, sweep, speed_dps=speed, save_truth=False)
+        engine = build_run(rig, tmp / "stream", sweep=sweep, capture_qc=False,
+                           options=EngineOptions.of(speed_dps=speed, save_truth=False))
+        store = engine.store
         with RssSampler() as rss:
             t = time.perf_counter()
             st = engine.run()
@@ -170,7 +176,8 @@ def mockup_radius_px(size: int) -> float:
             rig.turntable.move_to(float(az))
             rig.camera.configure(exposure_s=0.005, gain=1.0)
             rig.camera.snap(timeout=5)
-            lab = rig.extras["frame_source"].truth().labels
+            assert rig.frame_source is not None
+            lab = rig.frame_source.truth().labels
             ys, xs = np.nonzero(lab)
             if len(xs):
                 r = max(r, float(np.hypot(xs - size / 2, ys - size / 2).max()))
@@ -229,7 +236,8 @@ def measure_sharpness(size: int, speeds: list[float], marks: list[float], exposu
     ax = cfg.axes["turntable"]
     layout = cfg.camera.model.layout
     rig = open_simulated_rig(cfg)
-    fs = rig.extras["frame_source"]
+    fs = rig.frame_source
+    assert fs is not None
     try:
         rig.mount("voyager", "B3")
         rig.tilt.move_to(cfg.elevations["E1"])
@@ -334,7 +342,8 @@ def bench_tradeoff(size: int, tmp: Path, speeds: list[float], sharp_size: int = 
     exposure = sweep.exposure_for("weak")
     for v in speeds:
         sweep = Sweep(**base, mode="continuous")
-        _, st, wall = run_session(cfg, sweep, tmp / f"c{v:g}", speed_dps=v, radius_px=radius)
+        _, st, wall = run_session(cfg, sweep, tmp / f"c{v:g}",
+                                  options=EngineOptions.of(speed_dps=v, radius_px=radius))
         rows.append({"mode": "continuous", "speed_dps": v, "sim_s": st.elapsed_s,
                      "blur_deg": v * exposure, "blur_px": float(np.radians(v * exposure) * radius),
                      "efficiency": st.efficiency, "wall_s": wall})

@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     base = next(s for s in scenes if s.name == "colorchecker/astronaut")
     star = groundtruth.siemens_star(camera, 256)
     star2 = groundtruth.siemens_star(camera, 256, two_materials=True)
-    rows = bench.stability_study(camera, base, star, star2)
+    rows = bench.demosaic_stability_study(camera, base, star, star2)
     emit("### Stability (base scene: ColorChecker on 'astronaut'; SSIM omitted)")
     emit()
     emit(bench.stability_table(rows))

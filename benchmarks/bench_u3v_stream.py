@@ -16,8 +16,9 @@ from __future__ import annotations
 import argparse
 import time
 
+from m2s2hil.drivers.clock import SystemClock
 from m2s2hil.drivers.u3v import U3VCamera
-from m2s2hil.simulators.clock import RealClock, VirtualClock
+from m2s2hil.simulators.clock import VirtualClock
 from m2s2hil.simulators.toucan import ToucanCamera
 from m2s2hil.simulators.u3v_backend import SimUsbBackend
 
@@ -52,7 +53,7 @@ def main() -> None:
     print(
         f"virtual  {args.format} 2048x2048: {args.frames / wall:7.1f} frames/s ({per_frame_ms:.1f} ms/frame)"
     )
-    wall, _gaps, missing = run(RealClock(), args.frames, args.format, 65.0)
+    wall, _gaps, missing = run(SystemClock(), args.frames, args.format, 65.0)
     print(
         f"realtime {args.format} 2048x2048 at 65 fps: {args.frames / wall:7.1f} frames/s delivered,"
         f" {missing} block ids lost"

@@ -14,6 +14,8 @@ a line it does not understand, so a missing answer is a :class:`ProtocolError`.
 
 from __future__ import annotations
 
+from typing import Any
+
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import DeviceGone, ProtocolError, RelayNotSwitched
 from m2s2hil.drivers.locking import one_at_a_time
@@ -118,7 +120,7 @@ class AsciiRelayBoard(RelayBoardBase):
         return self._retrying(lambda attempt: self._attempt(command, label, attempt, answers))
 
     def _attempt(self, command: Command, label: str, attempt: int, n_answers: int) -> list[str]:
-        where = {"device": self.name, "command": label, "attempt": attempt}
+        where: dict[str, Any] = {"device": self.name, "command": label, "attempt": attempt}
         try:
             self._open_line()
             self._parser.reset()

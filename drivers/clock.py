@@ -1,8 +1,9 @@
 """The clock every wait goes through.
 
 Drivers never call ``time.sleep`` or ``time.monotonic`` directly: they take a
-``Clock``. On the bench that is :class:`SystemClock`; in-process simulations pass
-the simulators' virtual clock, so a long sweep runs in seconds of wall time.
+``Clock``. On the bench that is :class:`SystemClock`, the one real-time clock (simulators
+served on pseudo-terminals run on it too); in-process simulations pass the simulators'
+virtual clock, so a long sweep runs in seconds of wall time.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ class Clock(Protocol):
 
 
 class SystemClock:
-    """Real time."""
+    """Real time: ``time.monotonic`` for waits, ``time.time`` for records."""
 
     def monotonic(self) -> float:
         return time.monotonic()

@@ -21,6 +21,8 @@ with FC01; a difference is :class:`RelayNotSwitched`.
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.drivers.errors import CommandRejected, DeviceGone, ProtocolError, RelayNotSwitched
 from m2s2hil.drivers.locking import one_at_a_time
@@ -113,6 +115,7 @@ class ModbusRelayBoard(RelayBoardBase):
     def state(self) -> frozenset[int]:
         """The channels whose coil reads on (FC01)."""
         reply = self._transact(ReadCoils(self.unit, 0, self.channels), "read coils")
+        assert isinstance(reply, CoilStatus)  # _check_reply made sure
         return frozenset(ch for ch in range(self.channels) if reply.values[ch])
 
     # -- internals --------------------------------------------------------------------------
@@ -131,7 +134,7 @@ class ModbusRelayBoard(RelayBoardBase):
         return self._retrying(lambda attempt: self._attempt(request, command, attempt))
 
     def _attempt(self, request: Request, command: str, attempt: int) -> Event:
-        where = {"device": self.name, "command": command, "attempt": attempt}
+        where: dict[str, Any] = {"device": self.name, "command": command, "attempt": attempt}
         try:
             self._open_line()
             self._codec.reset()
@@ -156,9 +159,9 @@ class ModbusRelayBoard(RelayBoardBase):
             self._codec.receive_data(self._read_some(deadline, command, attempt, missing))
             event = self._decoded(self._codec.next_event, command, attempt)
             if event is not NEED_DATA:
-                return event
+                return cast(Event, event)  # the codec's NEED_DATA sentinel is not an Event
 
-    def _check_reply(self, request: Request, reply: Event, where: dict) -> Event:
+    def _check_reply(self, request: Request, reply: Event, where: dict[str, Any]) -> Event:
         if reply.unit != request.unit:
             raise ProtocolError(f"answer from unit {reply.unit}, asked unit {request.unit}", **where)
         function_code = {ReadCoils: 0x01, WriteCoil: 0x05, WriteCoils: 0x0F}[type(request)]

@@ -5,6 +5,11 @@ the settings checks, the channel checks, ``set`` verified by read-back
 (:class:`RelayNotSwitched`), the retries of a transaction (the port reopened after it
 vanished) and the timed read of the next bytes. A subclass provides the wire
 transactions: writing the whole mask, reading the relays, switching one.
+
+Every error leaving a board names it and has a fault class: an I/O error that escapes
+the serial layer untyped (e.g. ``termios.error`` EIO from flushing a pseudo-terminal or
+adapter that went away, a raw ``OSError``) is a :class:`DeviceGone` of this board,
+retried after reopening the port like any vanished port.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from typing import Self, TypeVar
 
+import serial
 from m2s2hil.drivers.clock import Clock
 from m2s2hil.drivers.errors import DeviceError, DeviceGone, DeviceTimeout, ProtocolError, RelayNotSwitched
 from m2s2hil.drivers.locking import one_at_a_time
@@ -21,6 +27,13 @@ from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.protocols.errors import CodecError
 
 T = TypeVar("T")
+
+try:  # POSIX serial ports flush and configure through termios, whose error is no OSError
+    import termios
+
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, serial.SerialException, termios.error)
+except ImportError:  # pragma: no cover - not POSIX
+    _PORT_ERRORS = (OSError, serial.SerialException)
 
 
 class RelayBoardBase(ABC):
@@ -124,6 +137,13 @@ class RelayBoardBase(ABC):
                 last = exc
             except (DeviceTimeout, ProtocolError) as exc:
                 last = exc
+            except _PORT_ERRORS as exc:  # untyped I/O trouble of the port itself
+                gone = DeviceGone(f"I/O error on the port: {type(exc).__name__}: {exc}", device=self.name,
+                                  attempt=attempt)
+                if not self._ever_opened:
+                    raise gone from exc
+                self._needs_reconnect = True
+                last = gone
         assert last is not None
         raise last
 

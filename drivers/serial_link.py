@@ -48,8 +48,11 @@ class SerialLink:
     def open(self) -> None:
         self.close()
         try:
+            # A device path is opened exclusively (flock on POSIX): a second program on the same
+            # port fails at once with "port busy" instead of both reading each other's replies.
+            extra = {} if "://" in self.url else {"exclusive": True}
             self._port = serial.serial_for_url(
-                self.url, timeout=self.timeout_s, write_timeout=self.timeout_s, **self.settings
+                self.url, timeout=self.timeout_s, write_timeout=self.timeout_s, **self.settings, **extra
             )
         except (serial.SerialException, OSError, ValueError) as exc:
             self._port = None

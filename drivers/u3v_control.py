@@ -141,9 +141,10 @@ class GenCPControl:
             addr = address + len(out)
             n = min(chunk, length - len(out))
             what = f"READMEM 0x{addr:X}+{n}"
-            ack = self._transact(
-                lambda rid, resend, a=addr, k=n: u3v.read_mem(a, k, rid, resend=resend), what
-            )
+            def read_cmd(rid: int, resend: bool, a: int = addr, k: int = n) -> u3v.Command:
+                return u3v.read_mem(a, k, rid, resend=resend)
+
+            ack = self._transact(read_cmd, what)
             self._check(ack, what, addr)
             if len(ack.payload) != n:
                 raise ProtocolError(
@@ -161,9 +162,10 @@ class GenCPControl:
             addr = address + done
             part = bytes(data[done : done + chunk])
             what = f"WRITEMEM 0x{addr:X}+{len(part)}"
-            ack = self._transact(
-                lambda rid, resend, a=addr, p=part: u3v.write_mem(a, p, rid, resend=resend), what
-            )
+            def write_cmd(rid: int, resend: bool, a: int = addr, p: bytes = part) -> u3v.Command:
+                return u3v.write_mem(a, p, rid, resend=resend)
+
+            ack = self._transact(write_cmd, what)
             self._check(ack, what, addr)
             try:
                 written = u3v.parse_write_mem_ack(ack)

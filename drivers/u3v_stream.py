@@ -144,11 +144,6 @@ class StreamChannel:
         self.enabled = False
         self._pending_leader = None
 
-    def restart_sequence(self) -> None:
-        """The device starts counting again (after a reconnect): no gap to report."""
-        self.last_block_id = None
-        self._pending_leader = None
-
     # -- reading ------------------------------------------------------------------------
     def _read(self, buf: array.array, deadline: float, what: str) -> int:
         remaining = deadline - self.clock.monotonic()

@@ -310,8 +310,8 @@ def open_zaber_axes(
         clock=clock,
         retries=dev.retries,
     )
-    zd.connect()
     try:
+        zd.connect()
         made = {
             role: zd.axis(
                 int(ax.axis),

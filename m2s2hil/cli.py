@@ -23,6 +23,10 @@ def _register() -> None:
     from m2s2hil.commands import bench, evaluate, export, importer, rig, serve, sessions, sim, sim_serve
 
     sim.app.command("serve")(sim_serve.serve)
+    from m2s2hil.commands import rig_commission  # rig probe, rig origin (commissioning)
+
+    rig.app.command("probe")(rig_commission.probe)
+    rig.app.command("origin")(rig_commission.origin)
     app.add_typer(sim.app, name="sim")
     app.add_typer(rig.app, name="rig")
     app.add_typer(sessions.app, name="sessions")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import tomllib
+import weakref
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -26,10 +27,11 @@ from pydantic import (
 )
 
 from m2s2hil.errors import ConfigError, validation_problem
+from m2s2hil.sim_config import SimulationConfig, check_devices
 
 MOTION_PROTOCOLS = ("grbl", "zaber")
 RELAY_PROTOCOLS = ("modbus-rtu", "ascii-relay")
-Protocol = Literal["grbl", "zaber", "modbus-rtu", "ascii-relay"]
+DeviceProtocol = Literal["grbl", "zaber", "modbus-rtu", "ascii-relay"]
 
 # Default MSFA layout (band index 0..9 at each of the 16 positions of the 4x4 cell).
 # The TOUCAN's real layout is not public; this documented default spreads the six
@@ -47,7 +49,7 @@ class _Model(BaseModel):
 
 
 class DeviceConfig(_Model):
-    protocol: Protocol
+    protocol: DeviceProtocol
     port: str = Field(min_length=1, description="/dev/ttyUSB0, a pty path, or sim://NAME")
     baudrate: Annotated[int, Field(gt=0)] = 115200
     bytesize: Literal[5, 6, 7, 8] = 8
@@ -69,6 +71,13 @@ class AxisConfig(_Model):
     tolerance_deg: Annotated[float, Field(gt=0)] = 0.05
     cable_wrap_limit_deg: Annotated[float, Field(gt=0)] | None = None
     settle_s: Annotated[float, Field(ge=0)] = 0.0
+    #: ``switches``: the controller homes the axis on its switches when the rig opens.
+    #: ``none`` (a factory GRBL has homing off, ``$22=0``): the operator sets the origin with
+    #: ``m2s2hil rig origin AXIS``; see m2s2hil/rig/origin.py and docs/rig-setup.md.
+    homing: Literal["switches", "none"] = "none"
+    #: Motor steps per degree of the axis (full steps per turn x microstepping x gear ratio / 360),
+    #: if known: ``m2s2hil rig probe`` then checks GRBL's ``$100..$102`` against it.
+    steps_per_degree: Annotated[float, Field(gt=0)] | None = None
 
     @model_validator(mode="after")
     def _limits(self) -> AxisConfig:
@@ -157,6 +166,18 @@ class ProcessingConfig(_Model):
     dark_temperature_tolerance_c: Annotated[float, Field(gt=0)] = 2.0
 
 
+class StorageConfig(_Model):
+    """How sessions store frames (m2s2hil.store.frame_files; measured in docs/benchmarks.md).
+
+    ``format = "compressed"``: raw mosaics and darks as deflate-compressed uint16 TIFF, cubes
+    computed from raw + dark when read. ``"legacy"``: the format before 0.2 (uncompressed raw,
+    float32 darks, float32 cubes always stored), kept to compare against. ``cubes = true``
+    also caches the cubes (compressed), for slow demosaicing methods."""
+
+    format: Literal["compressed", "legacy"] = "compressed"
+    cubes: bool = False
+
+
 class RigInfo(_Model):
     name: str = "rig"
 
@@ -170,8 +191,9 @@ class RigConfig(_Model):
     elevations: dict[str, float]
     camera: CameraConfig = CameraConfig()
     processing: ProcessingConfig = ProcessingConfig()
-    simulation: dict[str, object] = Field(
-        default_factory=dict, description="simulator parameters (scene, sensor, faults)"
+    storage: StorageConfig = StorageConfig()
+    simulation: SimulationConfig = Field(
+        default_factory=SimulationConfig, description="simulator parameters (scene, sensor, faults)"
     )
 
     @field_validator("axes")
@@ -184,53 +206,58 @@ class RigConfig(_Model):
 
     @model_validator(mode="after")
     def _cross(self) -> RigConfig:
+        # Cross-field problems raise ConfigError (not a ValueError, so pydantic lets it
+        # through with its key); parse_rig adds the file name.
         from m2s2hil.catalog import load_catalog
 
         cat = load_catalog()
         for role, ax in self.axes.items():
             dev = self.devices.get(ax.device)
             if dev is None:
-                raise _KeyedError(f"axes.{role}.device", f"no device named {ax.device!r}")
+                raise ConfigError("", f"axes.{role}.device", f"no device named {ax.device!r}")
             if dev.protocol not in MOTION_PROTOCOLS:
-                raise _KeyedError(
-                    f"axes.{role}.device", f"device {ax.device!r} speaks {dev.protocol}, not motion"
+                raise ConfigError(
+                    "", f"axes.{role}.device", f"device {ax.device!r} speaks {dev.protocol}, not motion"
                 )
             if dev.protocol == "grbl" and ax.axis.upper() not in ("X", "Y", "Z"):
-                raise _KeyedError(f"axes.{role}.axis", f"GRBL axis must be X, Y or Z, not {ax.axis!r}")
+                raise ConfigError("", f"axes.{role}.axis", f"GRBL axis must be X, Y or Z, not {ax.axis!r}")
             if dev.protocol == "zaber" and not ax.axis.isdigit():
-                raise _KeyedError(f"axes.{role}.axis", f"Zaber axis must be a number, not {ax.axis!r}")
+                raise ConfigError("", f"axes.{role}.axis", f"Zaber axis must be a number, not {ax.axis!r}")
         relays = [n for n, d in self.devices.items() if d.protocol in RELAY_PROTOCOLS]
         if self.lamps and len(relays) != 1:
-            raise _KeyedError("devices", f"lamps need exactly one relay board, found {len(relays)}")
+            raise ConfigError("", "devices", f"lamps need exactly one relay board, found {len(relays)}")
         chans: dict[int, str] = {}
         for name, lamp in self.lamps.items():
             if lamp.channel in chans:
-                raise _KeyedError(
-                    f"lamps.{name}.channel",
+                raise ConfigError(
+                    "", f"lamps.{name}.channel",
                     f"channel {lamp.channel} already used by lamp {chans[lamp.channel]!r}",
                 )
             chans[lamp.channel] = name
         for cond in cat.lighting:
             if cond not in self.lighting:
-                raise _KeyedError("lighting", f"missing preset for condition {cond!r}")
+                raise ConfigError("", "lighting", f"missing preset for condition {cond!r}")
         for cond, lamps in self.lighting.items():
             if cond not in cat.lighting:
-                raise _KeyedError(f"lighting.{cond}", f"unknown condition; known: {sorted(cat.lighting)}")
+                raise ConfigError("", f"lighting.{cond}", f"unknown condition; known: {sorted(cat.lighting)}")
             for lamp in lamps:
                 if lamp not in self.lamps:
-                    raise _KeyedError(f"lighting.{cond}", f"no lamp named {lamp!r}")
+                    raise ConfigError("", f"lighting.{cond}", f"no lamp named {lamp!r}")
         for e in cat.elevations:
             if e not in self.elevations:
-                raise _KeyedError("elevations", f"missing tilt angle for {e}")
+                raise ConfigError("", "elevations", f"missing tilt angle for {e}")
         tilt = self.axes["tilt"]
         for e, ang in self.elevations.items():
             if e not in cat.elevations:
-                raise _KeyedError(f"elevations.{e}", f"unknown elevation; known: {sorted(cat.elevations)}")
+                raise ConfigError(
+                    "", f"elevations.{e}", f"unknown elevation; known: {sorted(cat.elevations)}"
+                )
             if not tilt.min_deg <= ang <= tilt.max_deg:
-                raise _KeyedError(
-                    f"elevations.{e}", f"{ang} deg is outside the tilt soft limits "
+                raise ConfigError(
+                    "", f"elevations.{e}", f"{ang} deg is outside the tilt soft limits "
                     f"[{tilt.min_deg}, {tilt.max_deg}]"
                 )
+        check_devices(self)
         return self
 
     # Convenience views -------------------------------------------------------------
@@ -244,33 +271,43 @@ class RigConfig(_Model):
     def warmup_s(self, condition: str) -> float:
         return max((self.lamps[n].warmup_s for n in self.lighting[condition]), default=0.0)
 
+    @property
+    def source_path(self) -> Path | None:
+        """The file this configuration was loaded from (None: built-in, parsed from a document
+        or copied); the rig's state file (m2s2hil/rig/origin.py) sits next to it. Kept outside
+        the model, so two configurations with the same content stay equal."""
+        return _SOURCES.get(id(self))
+
     @cached_property
     def digest(self) -> str:
-        """sha256 of the canonical JSON form; recorded with every frame."""
-        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()
+        """sha256 of the canonical JSON form; recorded with every frame. The simulation
+        section counts only where it differs from the defaults, so a rig's digest is the
+        same whether its defaults were written out or left implicit."""
+        doc = self.model_dump(mode="json")
+        doc["simulation"] = self.simulation.model_dump(mode="json", exclude_defaults=True)
+        # Where a device is plugged in does not change the data: ports stay out (a pty number,
+        # USB adapters enumerated in another order); the calibration counts by its content.
+        for dev in doc["devices"].values():
+            dev.pop("port", None)
+        doc["camera"].pop("port", None)
+        cal = self.camera.calibration_file
+        if cal is not None and Path(cal).is_file():  # else its path stands in; opening reports it
+            doc["camera"]["calibration_file"] = hashlib.sha256(Path(cal).read_bytes()).hexdigest()
+        blob = json.dumps(doc, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()
 
 
-class _KeyedError(ValueError):
-    """A cross-field problem that knows which key it is about."""
-
-    def __init__(self, key: str, problem: str) -> None:
-        super().__init__(problem)
-        self.key = key
-        self.problem = problem
-
-
 DEFAULT_RIG_SOURCE = "<built-in simulated rig>"
+_SOURCES: dict[int, Path] = {}  # id(config) -> the file load_rig read it from (RigConfig.source_path)
 
 
 def parse_rig(data: dict, source: str) -> RigConfig:
     try:
         return RigConfig.model_validate(data)
     except ValidationError as exc:
-        ctx_err = (exc.errors()[0].get("ctx") or {}).get("error")
-        if isinstance(ctx_err, _KeyedError):
-            raise ConfigError(source, ctx_err.key, ctx_err.problem) from None
         raise ConfigError(source, *validation_problem(exc)) from None
+    except ConfigError as exc:  # a cross-field check (raised through pydantic): add the file
+        raise ConfigError(source, exc.key, exc.problem) from None
 
 
 def read_toml(path: str | Path) -> dict:
@@ -303,6 +340,9 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
         # A calibration file named in a rig file is found next to that file.
         camera = rig.camera.model_copy(update={"calibration_file": Path(path).parent / cal})
         rig = rig.model_copy(update={"camera": camera})
+    if path is not None:
+        _SOURCES[id(rig)] = Path(path)
+        weakref.finalize(rig, _SOURCES.pop, id(rig), None)
     return rig
 
 

@@ -1,4 +1,5 @@
-"""The machine line recorded with every benchmark figure."""
+"""The machine a figure was measured on: recorded with every benchmark figure, in
+``evaluate``'s ``summary.json`` and by ``m2s2hil bench demosaic``."""
 
 from __future__ import annotations
 

@@ -30,7 +30,6 @@ import math
 import threading
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
-from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
 from pydantic import (
@@ -45,7 +44,7 @@ from pydantic import (
 
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import AxisConfig, RigConfig
-from m2s2hil.errors import CatalogError, UsageError, validation_problem
+from m2s2hil.errors import CatalogError, KeyedError, UsageError, validation_problem
 
 # Starting exposures per condition (seconds): strong diffuse has ~1.7x the light of
 # weak diffuse; the spotlight is brighter still on the lit side of the mockup.
@@ -56,15 +55,8 @@ AXES = ("light", "tilt", "azimuth")
 DEFAULT_AXIS_ORDER = "light>tilt>azimuth"
 
 
-class PlanError(UsageError):
+class PlanError(KeyedError):
     """A sweep that cannot be used: ``source`` names where it came from, ``key`` the field."""
-
-    def __init__(self, source: str, key: str, problem: str) -> None:
-        self.source = source
-        self.key = key
-        self.problem = problem
-        where = f"{source}: {key}" if key else source
-        super().__init__(f"{where}: {problem}")
 
 
 class _Model(BaseModel):
@@ -75,17 +67,11 @@ Seconds = Annotated[float, Field(ge=MIN_EXPOSURE_S, le=MAX_EXPOSURE_S)]
 
 
 def _condition_key(name: str) -> str:
-    cat = load_catalog()
-    low = str(name).strip().lower()
-    if low == "all":
-        raise ValueError(
-            "'all' is not a lighting condition here (the published dataset uses it for strong "
-            "diffuse); list the conditions: weak, strong, directional"
-        )
-    for k in cat.lighting:
-        if k.lower() == low:
-            return k
-    raise ValueError(f"unknown lighting condition {name!r}; known: {', '.join(sorted(cat.lighting))}")
+    # Any case, and the published release's names (solo, all, dir -> weak, strong, directional).
+    try:
+        return load_catalog().light(str(name)).key
+    except CatalogError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def _round_exposure(s: float) -> float:
@@ -108,7 +94,7 @@ class FixedExposure(_Model):
         return out
 
 
-class AutoExposure(_Model):
+class AutoExposureSettings(_Model):
     """Meter each pose: aim the ``percentile`` of the raw mosaic at ``target_fraction``
     of full scale. ``start_s`` are the first guesses (also used to plan the darks)."""
 
@@ -129,7 +115,7 @@ class AutoExposure(_Model):
         return out
 
     @model_validator(mode="after")
-    def _range(self) -> AutoExposure:
+    def _range(self) -> AutoExposureSettings:
         if self.min_s > self.max_s:
             raise ValueError(f"min_s ({self.min_s}) is above max_s ({self.max_s})")
         return self
@@ -197,10 +183,13 @@ class Sweep(_Model):
     build: str
     lighting: list[str] = Field(default_factory=lambda: ["weak", "strong", "directional"], min_length=1)
     tilts: list[str] = Field(default_factory=lambda: ["E0", "E1", "E2"], min_length=1)
-    azimuth_step_deg: Annotated[float, Field(gt=0, le=360)] = 10.0
+    # 0.01 deg (36,000 poses) bounds the grid in the schema too; the frame limit is checked apart.
+    azimuth_step_deg: Annotated[float, Field(ge=0.01, le=360)] = 10.0
     azimuth_start_deg: Annotated[float, Field(ge=0, lt=360)] = 0.0
     frames_per_pose: Annotated[int, Field(ge=1, le=100)] = 1
-    exposure: FixedExposure | AutoExposure = Field(default_factory=FixedExposure, discriminator="mode")
+    exposure: FixedExposure | AutoExposureSettings = Field(
+        default_factory=FixedExposure, discriminator="mode"
+    )
     gain: Annotated[float, Field(ge=0, le=48)] = 1.0
     settle_s: Annotated[float, Field(ge=0, le=60)] | None = None
     dark: DarkPolicy = DarkPolicy()
@@ -284,11 +273,12 @@ class Sweep(_Model):
     # ------------------------------------------------------------------ views
     @property
     def auto_exposure(self) -> bool:
-        return isinstance(self.exposure, AutoExposure)
+        return isinstance(self.exposure, AutoExposureSettings)
 
     def exposure_for(self, condition: str) -> float:
         """The planned (fixed) or starting (auto) exposure of a condition."""
-        table = self.exposure.start_s if isinstance(self.exposure, AutoExposure) else self.exposure.seconds
+        exp = self.exposure
+        table = exp.start_s if isinstance(exp, AutoExposureSettings) else exp.seconds
         return table[condition]
 
     def azimuths(self) -> list[float]:
@@ -329,17 +319,6 @@ def parse_sweep(data: Any, source: str = "<sweep>") -> Sweep:
         return Sweep.model_validate(data)
     except ValidationError as exc:
         raise PlanError(source, *validation_problem(exc)) from None
-
-
-def load_sweep(path: str | Path) -> Sweep:
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PlanError(str(p), "", "no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PlanError(str(p), "", f"cannot read: {exc}") from None
-    return Sweep.from_json(text, source=str(p))
 
 
 # ---------------------------------------------------------------------- geometry
@@ -541,11 +520,6 @@ class PlanEstimate(_Model):
     lower_bound_s: float
     breakdown: dict[str, float]  # seconds per component of total_s
     counts: dict[str, int] = Field(default_factory=dict)
-
-    @property
-    def efficiency_bound(self) -> float:
-        """lower bound / estimate: the best efficiency this ordering can reach."""
-        return self.lower_bound_s / self.total_s if self.total_s > 0 else 1.0
 
 
 def _settle(ev: CaptureEvent, rig: RigConfig, moved: Iterable[str]) -> float:

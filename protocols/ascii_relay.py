@@ -20,6 +20,7 @@ any split of the incoming bytes). Board side: :func:`parse_command` and
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from m2s2hil.protocols.errors import CodecError
@@ -160,7 +161,9 @@ def parse_command(line: str, channels: int = 8) -> Command | None:
     channel = parse_channel_token(words[2])
     if channel is None or channel >= channels:
         return None
-    return {"on": RelayOn, "off": RelayOff, "read": RelayRead}.get(verb, lambda _c: None)(channel)
+    make: dict[str, Callable[[int], RelayOn | RelayOff | RelayRead]] = {
+        "on": RelayOn, "off": RelayOff, "read": RelayRead}
+    return make[verb](channel) if verb in make else None
 
 
 def encode_reply(answers: list[str] | tuple[str, ...] = ()) -> bytes:

@@ -96,6 +96,7 @@ CRITICAL_ALARMS = frozenset({GrblAlarm.HARD_LIMIT, GrblAlarm.SOFT_LIMIT})
 MSG_RESET_TO_CONTINUE = "Reset to continue"
 MSG_UNLOCK = "'$H'|'$X' to unlock"
 MSG_UNLOCKED = "Caution: Unlocked"
+MSG_RESTORING_DEFAULTS = "Restoring defaults"  # after $RST=..., before the firmware resets itself
 #: Settings GRBL prints as integers (masks, booleans, microseconds); the rest get 3 decimals.
 INTEGER_SETTINGS = frozenset({0, 1, 2, 3, 4, 5, 6, 10, 13, 20, 21, 22, 23, 30, 31, 32})
 STATE_NAMES = ("Idle", "Run", "Hold", "Jog", "Alarm", "Door", "Check", "Home", "Sleep")
@@ -498,14 +499,6 @@ def setting_line(number: int, value: float) -> str:
 
 def encode_move(axes: Mapping[str, float], **kw: object) -> bytes:
     return encode_line(move_line(axes, **kw))  # type: ignore[arg-type]
-
-
-def encode_jog(axes: Mapping[str, float], **kw: object) -> bytes:
-    return encode_line(jog_line(axes, **kw))  # type: ignore[arg-type]
-
-
-def encode_setting(number: int, value: float) -> bytes:
-    return encode_line(setting_line(number, value))
 
 
 # -- host side: flow control -------------------------------------------------------------

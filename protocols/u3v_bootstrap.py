@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from enum import IntEnum
+from enum import IntEnum, IntFlag
 
 from m2s2hil.protocols.errors import CodecError
 
@@ -62,6 +62,52 @@ class SBRM(IntEnum):
 
 
 SBRM_SIZE = 0x44
+
+
+class DeviceCapability(IntFlag):
+    """Bits of the ABRM Device Capability register (u64 at 0x01C4), bit 0 = least
+    significant, as GenCP 1.x lays it out (cross-checked against the cameleon U3V
+    implementation). Bits 4..7 hold the string encoding (:class:`StringEncoding`)."""
+
+    USER_DEFINED_NAME = 1 << 0
+    ACCESS_PRIVILEGE_HEARTBEAT = 1 << 1
+    MESSAGE_CHANNEL = 1 << 2
+    TIMESTAMP = 1 << 3
+    FAMILY_NAME = 1 << 8
+    SBRM = 1 << 9
+    ENDIANNESS_REGISTER = 1 << 10
+    WRITTEN_LENGTH_FIELD = 1 << 11
+    MULTI_EVENT = 1 << 12
+    STACKED_COMMANDS = 1 << 13
+    DEVICE_SOFTWARE_INTERFACE_VERSION = 1 << 14
+
+
+class StringEncoding(IntEnum):
+    """Device Capability bits 4..7: how the ABRM string registers are encoded."""
+
+    ASCII = 0
+    UTF8 = 1
+    UTF16 = 2
+
+
+_ENCODING_SHIFT = 4
+_KNOWN_CAPABILITY_BITS = 0x7F0F  # bits 0..14; 15..63 are reserved
+
+
+def encode_device_capability(flags: DeviceCapability, encoding: StringEncoding = StringEncoding.ASCII) -> int:
+    return int(flags) | (int(encoding) << _ENCODING_SHIFT)
+
+
+def decode_device_capability(value: int) -> tuple[DeviceCapability, StringEncoding]:
+    """The flags and string encoding of a Device Capability register value."""
+    if not 0 <= value < 1 << 64:
+        raise CodecError(f"device capability {value!r} is not a u64")
+    code = (value >> _ENCODING_SHIFT) & 0xF
+    try:
+        encoding = StringEncoding(code)
+    except ValueError:
+        raise CodecError(f"device capability 0x{value:016X}: unknown string encoding {code}") from None
+    return DeviceCapability(value & _KNOWN_CAPABILITY_BITS), encoding
 
 
 class SIRM(IntEnum):

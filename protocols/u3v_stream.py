@@ -152,7 +152,7 @@ def decode_trailer(data: bytes) -> Trailer:
     return Trailer(block_id=f[3], status=f[4], valid_payload_size=f[6], size_y=size_y)
 
 
-def stream_prefix(data: bytes) -> int | None:
+def stream_prefix(data: bytes | memoryview) -> int | None:
     """The U3VL/U3VT prefix of a transfer, or None for payload bytes."""
     if len(data) >= 4:
         (p,) = struct.unpack_from("<I", data)
@@ -214,7 +214,7 @@ def encode_image(pixels: np.ndarray, fmt: PixelFormat | int) -> bytes | memoryvi
     if fmt is PixelFormat.Mono8:
         return np.ascontiguousarray(pixels, dtype=np.uint8).tobytes()
     arr = np.ascontiguousarray(pixels, dtype="<u2")
-    return memoryview(arr).cast("B")
+    return memoryview(arr.data).cast("B")
 
 
 def decode_image(

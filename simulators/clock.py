@@ -3,7 +3,8 @@
 Time only moves when someone sleeps on it (or calls :meth:`advance`), so a sweep
 that would take an hour on the bench runs in seconds while every duration it
 reports is the simulated one. It satisfies ``m2s2hil.drivers.clock.Clock``
-structurally; simulators do not import drivers.
+structurally. Simulators served in real time (pseudo-terminals) use the one real-time
+clock, ``m2s2hil.drivers.clock.SystemClock``.
 """
 
 from __future__ import annotations
@@ -33,23 +34,5 @@ class VirtualClock:
         with self._lock:
             self._now += max(0.0, float(seconds))
 
-    def advance_to(self, t: float) -> None:
-        with self._lock:
-            self._now = max(self._now, float(t))
-
     def wall(self) -> float:
         return self._epoch + self.monotonic()
-
-
-class RealClock:
-    """Real time for simulators served on pseudo-terminals."""
-
-    def monotonic(self) -> float:
-        return time.monotonic()
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            time.sleep(seconds)
-
-    def wall(self) -> float:
-        return time.time()

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from m2s2hil.simulators.scene import Scene, SceneError, SceneParams, Shaded
 from m2s2hil.simulators.sensor import Sensor, SensorParams
+from m2s2hil.simulators.targets import white_panel_rate
 
 MaterialsOfBuild = Callable[[str, str], Sequence[str]] | Mapping[Any, Any]
 
@@ -195,12 +196,17 @@ class SimFrameSource:
             sat, build = str(w.satellite), str(w.build)
             spot = float(w.spot_angle_deg)
             cap = bool(w.lens_cap)
+            target = str(w.target)
             mats = self.materials(sat, build)
             names = ["background", *mats]
             shaded: Shaded | None = None
             rate: np.ndarray | None = None  # the average over the sub-exposures, if several
             if cap:
                 frame = self.sensor.expose(None, exposure_s, gain, temp)
+            elif target == "white_panel":
+                panel = white_panel_rate(self.band_response, self.sensor.band_map(), lamps, w.lamp_info, spot,
+                                         self.scene.params.lighting)
+                frame = self.sensor.expose(panel, exposure_s, gain, temp)
             else:
                 for i, p in enumerate(poses):
                     sub = self.scene.render(

@@ -81,6 +81,7 @@ from m2s2hil.protocols.grbl import (
     AXES,
     CRITICAL_ALARMS,
     MSG_RESET_TO_CONTINUE,
+    MSG_RESTORING_DEFAULTS,
     MSG_UNLOCK,
     MSG_UNLOCKED,
     RX_BUFFER_SIZE,
@@ -173,6 +174,9 @@ class GrblSimulator(InOrderReplies, SimDevice):
             self.settings[110 + i] = ax.max_rate
             self.settings[120 + i] = ax.accel
             self.settings[130 + i] = ax.max_travel
+        unknown_settings = set(settings or {}) - set(self.settings)
+        if unknown_settings:
+            raise ValueError(f"GRBL 1.1 has no setting(s) {sorted(unknown_settings)}")
         self.settings.update(settings or {})
         self._defaults = dict(self.settings)
         self.homing_axes = tuple(ax.homing for ax in per_axis)
@@ -615,8 +619,11 @@ class GrblSimulator(InOrderReplies, SimDevice):
                 self.settings = dict(self._defaults)
             if text[5] in "#*":
                 self.coord_data = {n: [0.0, 0.0, 0.0] for n in COORD_TABLES}
+            if text[5] == "*":  # everything GRBL keeps in EEPROM: startup lines and $I text too
+                self.startup_blocks = {0: "", 1: ""}
+                self.build_text = ""
             # "[MSG:Restoring defaults]", ok, then the firmware resets itself [src:system.c].
-            self._reply(Message("Restoring defaults"), Ok())
+            self._reply(Message(MSG_RESTORING_DEFAULTS), Ok())
             self._soft_reset(now)
         else:
             self._write_setting(text)
@@ -719,3 +726,64 @@ class GrblSimulator(InOrderReplies, SimDevice):
 
     def _error(self, code: GrblError) -> None:
         self._reply(Error(code))
+
+
+def grbl_sim_for(
+    name: str,
+    axes: Mapping[str, Any],
+    clock: Any,
+    world: Any,
+    faults: FaultPlan | None,
+    options: Mapping[str, Any] | None = None,
+) -> GrblSimulator:
+    """The simulator for the GRBL device ``name`` of a rig configuration.
+
+    ``axes`` maps roles to ``AxisConfig`` objects (``axis`` = letter); each role is
+    attached to ``world`` (if given) in degrees. ``options`` (the rig file's
+    ``[simulation.devices.NAME]`` table) may hold:
+
+    - ``homing_switches`` (bool, default false): the axes have home switches and the
+      controller has homing enabled (``$22=1``, so it boots locked in Alarm). False is the
+      factory controller: ``$H`` answers ``error:5``.
+    - ``factory_rates`` (bool, default false): keep GRBL's factory ``$110..$132`` instead of
+      a controller commissioned to the rig file's speeds, accelerations and travel.
+    - ``settings`` (table of ``"$N"`` or ``N`` to a number): any setting, applied last.
+    - ``version`` / ``build``: what ``$I`` and the banner report.
+    """
+    opts = dict(options or {})
+    unknown = set(opts) - {"homing_switches", "factory_rates", "settings", "version", "build"}
+    if unknown:
+        raise ValueError(f"unknown GRBL simulator option(s) {sorted(unknown)}")
+    if not isinstance(opts.get("settings", {}), Mapping):
+        raise ValueError("settings must be a table of $N = number")
+    switches = bool(opts.get("homing_switches", False))
+    per_axis: dict[str, GrblAxisSettings] = {}
+    for ax in axes.values():
+        upd = float(ax.units_per_degree)
+        if opts.get("factory_rates", False):
+            per_axis[ax.axis.upper()] = GrblAxisSettings(homing=switches)
+        else:
+            per_axis[ax.axis.upper()] = GrblAxisSettings(
+                max_rate=ax.max_speed_dps * upd * 60.0,
+                accel=ax.accel_dps2 * upd,
+                max_travel=2.0 * max(abs(ax.min_deg), abs(ax.max_deg)) * upd,
+                homing=switches,
+            )
+    settings: dict[int, float] = {22: 1.0} if switches else {}
+    for key, value in dict(opts.get("settings", {})).items():
+        try:
+            settings[int(str(key).lstrip("$"))] = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"GRBL setting {key!r} = {value!r}: expected a number for $N") from None
+    sim = GrblSimulator(
+        name, clock, axes=per_axis, settings=settings, faults=faults,
+        version=str(opts.get("version", "1.1h")), build=str(opts.get("build", "20190830")),
+    )
+    if world is not None:
+        for role, ax in axes.items():
+            # Timed: the camera asks where the stage was during an exposure already over.
+            world.attach_axis(
+                role, lambda t, s=sim, a=ax: s.axis_position(a.axis.upper(), t) / a.units_per_degree,
+                timed=True,
+            )
+    return sim

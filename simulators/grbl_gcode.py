@@ -10,10 +10,11 @@ here: a simulator limitation, not GRBL's behaviour.
 Work coordinates follow the GRBL 1.1 G-code parser (grbl/gcode.c, gnea/grbl v1.1h):
 absolute targets are work positions, machine = work + WCO (G54 offset; no G92, no tool
 offset here); G53 bypasses the offset. ``G10 L2 Pn`` stores the given values as the
-offset of coordinate system n (P0 = the active one, P1..P6 = G54..G59); ``G10 L20 Pn``
-stores the offset that makes the current position read as the given values
-(offset = machine position − value). A missing L or P is ``error:28``, P above 6
-``error:29``, any other L ``error:20``, no axis words ``error:26``.
+offset of coordinate system n (P0 or no P = the active one, P1..P6 = G54..G59);
+``G10 L20 Pn`` stores the offset that makes the current position read as the given
+values (offset = machine position − value). Errors in gcode.c's order: no axis words
+``error:26``, neither L nor P ``error:28``, P above 6 ``error:29``, an L other than 2 or
+20 (a missing L reads as 0) ``error:20``.
 """
 
 from __future__ import annotations
@@ -106,6 +107,8 @@ def parse_block(
     feed: float | None = None
     values: dict[str, float] = {}
     for letter, value in words:
+        if letter in "FNPST" and value < 0:
+            raise GcodeError(GrblError.NEGATIVE_VALUE)  # checked as each word is read (gcode.c)
         if letter == "G":
             code = int(value) if value.is_integer() else -1
             if code not in _G_GROUP or (jog and code not in _JOG_G):
@@ -128,11 +131,9 @@ def parse_block(
         elif letter == "F":
             if feed is not None:
                 raise GcodeError(GrblError.WORD_REPEATED)
-            if value < 0:
-                raise GcodeError(GrblError.NEGATIVE_VALUE)
             feed = value
         elif letter == "N":
-            if not value.is_integer() or value < 0:
+            if not value.is_integer():
                 raise GcodeError(GrblError.INVALID_LINE_NUMBER)
         elif letter in "ST" and not jog:
             continue
@@ -181,19 +182,19 @@ def _coord_write(
     *,
     explicit_motion: bool,
 ) -> CoordWrite:
+    # The checks in the order of gcode.c's NON_MODAL_SET_COORDINATE_DATA: a missing L reads as
+    # L0 (unsupported), a missing P as P0 (the active system).
     if explicit_motion:
         raise GcodeError(GrblError.AXIS_COMMAND_CONFLICT)  # G10 and G0/G1 both want the axis words
-    if "L" not in values or "P" not in values:
-        raise GcodeError(GrblError.VALUE_WORD_MISSING)
-    if not values["P"].is_integer() or not values["L"].is_integer():
-        raise GcodeError(GrblError.VALUE_NOT_INTEGER)
-    system, mode = int(values["P"]), int(values["L"])
-    if mode not in (2, 20):
-        raise GcodeError(GrblError.UNSUPPORTED_COMMAND)
-    if not 0 <= system <= 6:
-        raise GcodeError(GrblError.UNSUPPORTED_COORD_SYSTEM)
     if not axes:
         raise GcodeError(GrblError.NO_AXIS_WORDS)
+    if "L" not in values and "P" not in values:
+        raise GcodeError(GrblError.VALUE_WORD_MISSING)
+    system, mode = int(values.get("P", 0.0)), values.get("L", 0.0)
+    if system > 6:
+        raise GcodeError(GrblError.UNSUPPORTED_COORD_SYSTEM)
+    if mode not in (2.0, 20.0):
+        raise GcodeError(GrblError.UNSUPPORTED_COMMAND)
     if mode == 2:
         return CoordWrite(system, {i: v * scale for i, v in axes.items()})
     return CoordWrite(system, {i: position[i] - v * scale for i, v in axes.items()})

@@ -35,6 +35,9 @@ class World:
     satellite: str = "voyager"
     build: str = "B3"
     lens_cap: bool = False
+    #: What is in front of the camera: the mounted mockup or a calibration target
+    #: (see :mod:`m2s2hil.simulators.targets`).
+    target: str = "mockup"
     sensor_temperature_c: float = 35.0
     spot_angle_deg: float = 45.0  # spotlight incidence, from the camera axis, about vertical
 
@@ -102,6 +105,16 @@ class World:
         """Put a mockup on the turntable (the operator's job on the bench)."""
         with self._lock:
             self.satellite, self.build = satellite, build
+            self.version += 1
+
+    def set_target(self, target: str) -> None:
+        """Hold a calibration target in view (``"white_panel"``) or go back to the ``"mockup"``."""
+        from m2s2hil.simulators.targets import TARGETS
+
+        if target not in TARGETS:
+            raise ValueError(f"unknown target {target!r}; known: {', '.join(TARGETS)}")
+        with self._lock:
+            self.target = target
             self.version += 1
 
     def set_lens_cap(self, on: bool) -> None:

@@ -7,8 +7,18 @@ the protocol's velocity data units (microsteps/s × 1.6384), ``accel`` in its
 acceleration units (microsteps/s² × 1.6384 / 10000).
 
 Commands: the empty command (status), ``home``, ``move abs|rel|vel N``, ``stop``,
-``estop``, ``get``/``set`` of the settings below, ``warnings [clear]``. Rejections:
-``BADCOMMAND`` (unknown command or setting, writing a read-only one), ``BADDATA`` (a
+``estop``, ``get``/``set`` of the settings below, ``warnings [clear]``.
+
+Identity: ``deviceid`` (and its firmware-7 name ``device.id``), ``system.serial``,
+``version``, ``version.build``, ``system.axiscount`` (ASCII Protocol Manual; the X-MCB1
+manual's settings table gives ``version.build`` from 6.17 and ``system.serial`` from 6.15),
+and what zaber-motion's ``identify()`` reads besides (found by running it against this
+simulator): ``comm.packet.size.max``, ``device.hw.modified``, ``comm.command.packets.max``,
+``comm.word.size.max`` (the longest setting name the simulator knows, so every word fits),
+``get.settings.max``, and per axis ``resolution`` and ``peripheralid`` (rejected
+``BADCOMMAND``: an integrated stage has no peripheral; assumed).
+
+Rejections: ``BADCOMMAND`` (unknown command or setting, writing a read-only one), ``BADDATA`` (a
 missing or non-integer number, a target outside ``limit.min..limit.max``, a velocity
 above ``maxspeed``), ``BADAXIS`` (no such axis, or a device setting asked of an axis).
 
@@ -49,6 +59,14 @@ from m2s2hil.simulators.motion_kit import InOrderReplies, PathLog, Segment, Trap
 
 AXIS_SETTINGS_RW = ("maxspeed", "accel", "limit.min", "limit.max", "pos")
 AXIS_SETTINGS_RO = ("resolution", "encoder.pos")
+
+#: The product meant: a Zaber X-RSW60A-E03 motorized rotary stage (integrated controller,
+#: firmware 7, resolution 64). ASSUMED, not from a vendor document (none giving them was at
+#: hand; see docs/simulators.md): the device id, firmware version and build below, and the
+#: 0.000234375° microstep the default speeds are computed with. All are constructor options.
+DEVICE_ID = 50000
+FIRMWARE_VERSION = "7.38"
+FIRMWARE_BUILD = 16100
 
 
 @dataclass(frozen=True)
@@ -104,9 +122,10 @@ class ZaberSimulator(InOrderReplies, SimDevice):
         address: int = 1,
         axes: list[ZaberAxisSettings] | int = 1,
         faults: FaultPlan | None = None,
-        device_id: int = 50000,
+        device_id: int = DEVICE_ID,
         serial: int = 12345,
-        version: str = "7.38",
+        version: str = FIRMWARE_VERSION,
+        build: int = FIRMWARE_BUILD,
     ) -> None:
         super().__init__(name, clock, faults)
         if isinstance(axes, int):
@@ -129,13 +148,22 @@ class ZaberSimulator(InOrderReplies, SimDevice):
         ]
         self.device_settings: dict[str, str] = {
             "deviceid": str(device_id),
+            "device.id": str(device_id),  # the firmware-7 name of deviceid [ascii]
             "system.serial": str(serial),
             "version": version,
+            "version.build": str(build),
+            "device.hw.modified": "0",  # not modified from the catalogue product
             "system.axiscount": str(len(axes)),
-            "comm.word.size.max": "20",
             "comm.packet.size.max": "80",
+            # One packet per command and one setting per get: the simulator assembles no
+            # continuation packets and answers no multi-setting get (assumed values).
+            "comm.command.packets.max": "1",
+            "get.settings.max": "1",
             "comm.alert": "0",
         }
+        # Every word the device reads or writes fits: the longest setting name it knows.
+        names = [*self.device_settings, *AXIS_SETTINGS_RW, *AXIS_SETTINGS_RO, "comm.word.size.max"]
+        self.device_settings["comm.word.size.max"] = str(max(len(n) for n in names))
         self._parser = CommandParser()
         self.ignored = 0  # commands dropped for a bad checksum or a malformed line
         for ax in self._axes:

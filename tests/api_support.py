@@ -72,7 +72,8 @@ def daemon(root: Path, *, token: str | None = None, rig_config: RigConfig | None
            faults: dict | None = None, start: bool = True, **manager_kw: Any) -> Iterator[Daemon]:
     """A manager on a fresh simulated rig (virtual clock) and a TestClient on its app; everything
     is aborted, made safe and closed afterwards."""
-    app_kw = {k: manager_kw.pop(k) for k in ("cors_origins", "max_body_bytes") if k in manager_kw}
+    app_kw = {k: manager_kw.pop(k) for k in ("cors_origins", "allowed_hosts", "max_body_bytes")
+              if k in manager_kw}
     rig = open_simulated_rig(rig_config or small_rig_config(), faults=faults)
     try:
         mgr = SessionManager(rig, root, **manager_kw)
@@ -80,7 +81,8 @@ def daemon(root: Path, *, token: str | None = None, rig_config: RigConfig | None
             mgr.start()
         app = create_app(mgr, token=token, **app_kw)
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        with TestClient(app, headers=headers) as client:
+        headers["X-M2S2HIL"] = "1"  # a script, not a web page (see m2s2hil/api/csrf.py)
+        with TestClient(app, base_url="http://127.0.0.1:8750", headers=headers) as client:
             yield Daemon(rig, mgr, client, root)
         mgr.close(abort=True, timeout=30)
     finally:

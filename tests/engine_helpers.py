@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from m2s2hil.config import RigConfig, default_rig
+from m2s2hil.engine.options import EngineOptions
 from m2s2hil.engine.runner import Engine
 from m2s2hil.engine.state import EngineEvent, RunState
 from m2s2hil.plan import Sweep
@@ -60,7 +61,7 @@ def session(tmp_path: Path, sweep: Sweep | None = None, *, faults: dict | None =
         with lock:
             events.append(e)
 
-    engine = Engine(rig, store, sweep, on_event=record, **engine_kw)
+    engine = make_engine(rig, store, sweep, on_event=record, **engine_kw)
     try:
         yield Session(rig, store, engine, events)
     finally:
@@ -70,6 +71,13 @@ def session(tmp_path: Path, sweep: Sweep | None = None, *, faults: dict | None =
             engine.wait(timeout=30)
         store.close()
         rig.close()
+
+
+def make_engine(rig: Rig, store: SessionStore, sweep: Sweep | None = None, **kw: Any) -> Engine:
+    """An engine with flat keywords: ``policy``, ``qc`` and ``on_event`` as they are, the rest
+    folded into :class:`EngineOptions` (``speed_dps=`` etc. via ``EngineOptions.of``)."""
+    direct = {k: kw.pop(k) for k in ("policy", "qc", "on_event") if k in kw}
+    return Engine(rig, store, sweep, options=EngineOptions.of(**kw), **direct)
 
 
 def wait_for_state(engine: Engine, state: RunState, timeout: float = 30.0) -> None:

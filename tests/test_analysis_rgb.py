@@ -1,12 +1,22 @@
-"""Wavelength→RGB values computed by hand from the Bruton ramps, the NIR rule, and the rendering."""
+"""The camera RGB rendering (CIE 1931 → sRGB, IR cut) checked against colour-science, and the Bruton
+wavelength→RGB values computed by hand from the ramps, the NIR rule, and the rendering."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from m2s2hil.analysis.cie1931 import CIE1931_2DEG_5NM, XYZ_TO_LINEAR_SRGB
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.rgb import RgbBaseline, band_colours, render_rgb, wavelength_to_rgb
+from m2s2hil.analysis.rgb import (
+    TOUCAN_BANDS_NM,
+    RgbBaseline,
+    band_colours,
+    camera_rgb,
+    camera_weights,
+    render_rgb,
+    wavelength_to_rgb,
+)
 from m2s2hil.analysis.spectral import SpectralSegmenter
 from m2s2hil.analysis.synthetic import synthetic_scene
 
@@ -68,7 +78,61 @@ def test_rgb_baseline_segments_the_rendering() -> None:
     cube, gt = synthetic_scene((40, 40), 3, seed=2)
     base = RgbBaseline(SpectralSegmenter(seed=0))
     labels = base.segment(cube)
-    assert base.name == "rgb-spectral"
+    assert base.name == "rgb-spectral" and base.rendering == "camera"
     assert labels.shape == gt.shape
-    assert np.array_equal(labels, SpectralSegmenter(seed=0).segment(render_rgb(cube)))
+    assert np.array_equal(labels, SpectralSegmenter(seed=0).segment(camera_rgb(cube)))
     assert ((labels > 0) == (gt > 0)).mean() > 0.95
+    nir = RgbBaseline(SpectralSegmenter(seed=0), rendering="bruton")
+    assert nir.name == "rgb-nir-spectral"
+    assert np.array_equal(nir.segment(cube), SpectralSegmenter(seed=0).segment(render_rgb(cube)))
+    with pytest.raises(AnalysisInputError, match="Bruton"):
+        RgbBaseline(SpectralSegmenter(), nir="clamp")
+    with pytest.raises(AnalysisInputError, match="IR cut"):
+        RgbBaseline(SpectralSegmenter(), rendering="bruton", ir_cut_nm=700.0)
+
+
+# --- camera rendering ---------------------------------------------------------------------------
+
+
+def test_committed_cmf_table_is_the_cie_1931_observer() -> None:
+    colour = pytest.importorskip("colour")
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    for nm, x, y, z in CIE1931_2DEG_5NM:
+        assert (x, y, z) == pytest.approx(tuple(cmfs[nm]), rel=1e-5, abs=1e-9)
+    assert np.allclose(XYZ_TO_LINEAR_SRGB, colour.models.RGB_COLOURSPACE_sRGB.matrix_XYZ_to_RGB)
+
+
+def test_camera_sees_no_near_infrared() -> None:
+    w = camera_weights()
+    nm = np.array(TOUCAN_BANDS_NM)
+    assert w.shape == (10, 3)
+    assert np.all(w[nm >= 775] == 0)  # behind the 700 nm IR cut
+    assert np.allclose(w.sum(axis=0), 1.0)  # a flat spectrum renders neutral at its own level
+    # the Bruton map with NIR clamped gives 22.7 % of red to bands >= 775 nm (issue 15)
+    bruton = band_colours()
+    assert bruton[nm >= 775, 0].sum() / bruton[:, 0].sum() == pytest.approx(0.2268, abs=1e-3)
+    # without the cut the CMFs alone leave ~0.01 % to those bands
+    open_w = camera_weights(ir_cut_nm=780.0)
+    share = np.abs(open_w[nm >= 775, 0]).sum() / np.abs(open_w[:, 0]).sum()
+    assert 0 < share < 5e-4
+
+
+def test_camera_weights_by_hand_for_two_bands() -> None:
+    """Bands at 500 and 600 nm: hats 1→0 and 0→1 between them, constant outside; recompute by sums."""
+    from m2s2hil.analysis.cie1931 import cmf_table
+
+    nm_t, cmf = cmf_table()
+    lam = np.arange(380.0, 701.0)
+    bar = np.stack([np.interp(lam, nm_t, cmf[:, i]) for i in range(3)], axis=1)
+    hat600 = np.clip((lam - 500.0) / 100.0, 0, 1)
+    xyz = np.stack([(1 - hat600) @ bar, hat600 @ bar])
+    rgb = xyz @ XYZ_TO_LINEAR_SRGB.T
+    expect = rgb / rgb.sum(axis=0)
+    assert camera_weights((500.0, 600.0)) == pytest.approx(expect)
+    assert camera_weights((600.0, 500.0)) == pytest.approx(expect[::-1])  # order of bands kept
+    cube = np.stack([np.full((2, 2), 2.0), np.full((2, 2), 2.0)])
+    assert np.allclose(camera_rgb(cube, (500.0, 600.0)), 2.0, atol=1e-5)  # flat → neutral
+    with pytest.raises(AnalysisInputError, match="ir_cut_nm"):
+        camera_weights(ir_cut_nm=300.0)
+    with pytest.raises(AnalysisInputError, match="bands_nm"):
+        camera_weights((500.0, 500.0))

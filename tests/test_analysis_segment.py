@@ -83,8 +83,13 @@ def test_registry_builds_named_segmenters() -> None:
     spectral = create_segmenter("spectral", max_materials=4)
     assert isinstance(spectral, SpectralSegmenter) and spectral.max_materials == 4
     assert isinstance(spectral, Segmenter)
-    rgb = create_segmenter("rgb", gamma=1.0, nir="black", seed=3)
+    rgb = create_segmenter("rgb-nir", gamma=1.0, nir="black", seed=3)
     assert isinstance(rgb, RgbBaseline) and rgb.gamma == 1.0 and rgb.segmenter.seed == 3
+    assert rgb.rendering == "bruton" and rgb.name == "rgb-nir-spectral"
+    cam = create_segmenter("rgb", ir_cut_nm=650.0)
+    assert cam.rendering == "camera" and cam.ir_cut_nm == 650.0 and cam.name == "rgb-spectral"
+    with pytest.raises(AnalysisInputError, match="Bruton"):
+        create_segmenter("rgb", nir="clamp")  # the NIR variant only under its own name
     with pytest.raises(UnknownSegmenterError, match="did you mean 'spectral'"):
         create_segmenter("spectrl")
     with pytest.raises(AnalysisInputError, match="options"):

@@ -17,6 +17,7 @@ from api_support import free_port
 
 from m2s2hil.api.manager import RootLocked, lock_data_root
 from m2s2hil.config import load_rig
+from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
 from m2s2hil.store.session import SessionStore
 
 
@@ -148,6 +149,6 @@ def test_serve_says_which_device_it_cannot_open(tmp_path) -> None:
     p = subprocess.run([sys.executable, "-m", "m2s2hil.commands.serve", "--rig", str(rig), "--data-root",
                         str(tmp_path / "data"), "--port", str(free_port())],
                        capture_output=True, text=True, timeout=60)
-    assert p.returncode == 1
-    assert "error: cannot open the rig" in p.stderr and "stage" in p.stderr and "no-such-tty" in p.stderr
+    assert p.returncode == EXIT_UNREACHABLE  # documented in docs/rig-setup.md
+    assert "error: cannot open stage" in p.stderr and "no-such-tty" in p.stderr and "missing port" in p.stderr
     assert "Traceback" not in p.stderr

@@ -10,7 +10,6 @@ import sys
 import pytest
 from api_support import TOKEN, daemon, sweep
 
-from m2s2hil.api import security
 from m2s2hil.api.security import InsecureListen, check_listen, is_loopback
 from m2s2hil.api.settings import load_serve_settings
 from m2s2hil.errors import ConfigError
@@ -69,13 +68,13 @@ def test_settings_precedence(tmp_path) -> None:
 
 def test_token_rules_and_constant_time_comparison(tmp_path, monkeypatch) -> None:
     calls: list[tuple[bytes, bytes]] = []
+    real = secrets.compare_digest
 
     def spy(a, b):
         calls.append((a, b))
-        return secrets.compare_digest(a, b)
+        return real(a, b)
 
-    assert security.compare_digest is secrets.compare_digest  # the real one by default
-    monkeypatch.setattr(security, "compare_digest", spy)
+    monkeypatch.setattr(secrets, "compare_digest", spy)  # the constant-time comparison the check uses
     with daemon(tmp_path / "data", token=TOKEN) as d:
         c = d.client
         r = c.get("/sessions", headers={"Authorization": ""})

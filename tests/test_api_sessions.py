@@ -170,12 +170,12 @@ def test_resume_an_interrupted_session_from_disk(tmp_path) -> None:
 @pytest.mark.parametrize(("body", "where"), [
     ({"satellite": "apollo", "build": "B1"}, "body.satellite: unknown satellite 'apollo'"),
     ({"satellite": "iss", "build": "B9"}, "body.build"),
-    ({"satellite": "iss", "build": "B1", "lighting": ["all"]}, "'all' is not a lighting condition"),
+    ({"satellite": "iss", "build": "B1", "lighting": ["moon"]}, "unknown lighting condition 'moon'"),
     ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 0}, "body.azimuth_step_deg: Input should be"),
     ({"satellite": "iss", "build": "B1", "colour": "red"}, "body.colour: Extra inputs are not permitted"),
-    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 0.001}, "at most 20000"),
+    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 0.05}, "at most 20000"),
     ({"satellite": "iss", "build": "B1", "processing": "magic"}, "body.processing: unknown demosaicing"),
-    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 1e-300}, "too many frames"),
+    ({"satellite": "iss", "build": "B1", "azimuth_step_deg": 1e-219}, "greater than or equal to 0.01"),
 ])
 def test_invalid_sweeps_get_422_with_the_place(d, body, where) -> None:
     r = d.client.post("/sessions", json=body)
@@ -185,7 +185,7 @@ def test_invalid_sweeps_get_422_with_the_place(d, body, where) -> None:
 
 def test_malformed_requests(d) -> None:
     r = d.client.post("/sessions", content=b"{not json", headers={"content-type": "application/json"})
-    assert r.status_code == 422 and "JSON" in r.json()["detail"]
+    assert r.status_code == 400 and "malformed JSON" in r.json()["detail"]
     r = d.client.get("/sessions/no-such-session")
     assert r.status_code == 404 and "no session 'no-such-session'" in r.json()["detail"]
     for bad in (".hidden", "a b", "x" * 200):

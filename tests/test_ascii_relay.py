@@ -5,11 +5,11 @@ from __future__ import annotations
 import pytest
 import serial
 from m2s2hil.drivers.ascii_relay import AsciiRelayBoard
-from m2s2hil.drivers.errors import DeviceGone, DeviceTimeout, ProtocolError, RelayNotSwitched
+from m2s2hil.drivers.clock import SystemClock
+from m2s2hil.drivers.errors import DeviceGone, DeviceTimeout, ProtocolError
 from m2s2hil.drivers.interfaces import LightBank
 from m2s2hil.simulators import registry
 from m2s2hil.simulators.ascii_relay import AsciiRelaySim
-from m2s2hil.simulators.clock import RealClock
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice
 from m2s2hil.simulators.world import World
@@ -158,55 +158,7 @@ def test_sim_echoes_and_ignores_unknown_lines(vclock):
 
 
 # -- faults -----------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("kind", ["drop_reply", "garble", "late_reply"])
-def test_one_off_faults_are_recovered(rig, kind):
-    board, sim, world = rig
-    sim.faults.add(kind)
-    board.set([1, 3])
-    assert board.state() == {1, 3} == world.lamps_on()
-    assert [k for k, _ in sim.faults.log] == [kind]
-
-
-@pytest.mark.parametrize(
-    ("kind", "error"),
-    [("drop_reply", DeviceTimeout), ("garble", ProtocolError), ("late_reply", DeviceTimeout)],
-)
-def test_persistent_faults_end_in_typed_errors(rig, kind, error):
-    board, sim, _ = rig
-    sim.faults.add(kind, count=-1)
-    with pytest.raises(error) as err:
-        board.set([2])
-    assert err.value.attempt == 3 and err.value.device == "relays"
-    assert err.value.command == "relay writeall 04"
-
-
-def test_relay_stuck_is_relay_not_switched(rig):
-    board, sim, world = rig
-    sim.faults.add("relay_stuck", channel=5)
-    with pytest.raises(RelayNotSwitched, match=r"stuck: \[5\]"):
-        board.set([5, 6])
-    assert sim.on_channels == {6} == world.lamps_on()
-    sim.faults.add("relay_stuck", channel=6)
-    with pytest.raises(RelayNotSwitched, match="relay 6 reads on"):
-        board.switch(6, False)
-
-
-def test_vanish_is_recovered_by_reconnecting(rig, vclock):
-    board, sim, world = rig
-    board.connect()
-    sim.faults.add("vanish", duration_s=1.0)
-    board.set([7])
-    assert world.lamps_on() == {7}
-    assert vclock.monotonic() >= 1.0
-
-
-def test_vanish_for_good_is_device_gone(rig):
-    board, sim, _ = rig
-    board.connect()
-    sim.faults.add("vanish", duration_s=1e6)
-    with pytest.raises(DeviceGone) as err:
-        board.set([1])
-    assert err.value.attempt == 3
+# The injected faults of tests/test_relay_faults.py run against this board and the Modbus one.
 
 
 def test_missing_port_is_device_gone_at_once(vclock):
@@ -217,7 +169,7 @@ def test_missing_port_is_device_gone_at_once(vclock):
 
 # -- over a pseudo-terminal, in real time --------------------------------------------------------------
 def test_driver_against_simulator_on_a_pty():
-    clock = RealClock()
+    clock = SystemClock()
     world = World(clock)
     sim = AsciiRelaySim("as-pty", clock, on_change=world.set_lamp)
     with PtyServer(sim) as srv:

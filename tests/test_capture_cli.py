@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from m2s2hil.config import load_rig
+from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
 from m2s2hil.store.session import SessionStore, list_sessions
 
 
@@ -79,9 +81,17 @@ def test_capture_runs_a_complete_checksummed_session(tmp_path):
         assert store.verify() == []
         frames = store.frames()
         assert len(frames) == 2 * 4
-        assert {f.meta["lighting"] if "lighting" in f.meta else f.event_id.split("/")[0] for f in frames} == {
-            "weak", "directional"
-        }
+        # Every frame says under which lighting it was taken (and which lamps were on).
+        lamps = load_rig(rig).lighting  # the lamps the rig file puts in each condition
+        for f in frames:
+            lighting = f.meta["event"]["lighting"]
+            assert lighting == f.event_id.split("/")[0]
+            assert sorted(f.meta["lamp_names"]) == sorted(lamps[lighting])
+        assert {f.meta["event"]["lighting"] for f in frames} == {"weak", "directional"}
+        # The same builder as the daemon's: capture-time QC on every frame and in the summary.
+        assert all(isinstance(f.meta.get("qc"), dict) and "score" in f.meta["qc"] for f in frames)
+        finished = [e["payload"] for e in store.events() if e["kind"] == "run_finished"]
+        assert finished[-1]["qc"]["frames"] == len(frames)
     finally:
         store.close()
 
@@ -109,3 +119,17 @@ def test_a_session_the_engine_pauses_itself_ends_the_command_with_exit_3(tmp_pat
         assert result == [EXIT_PAUSED]
         assert store.state == "paused"
         assert_rig_safe(rig)
+
+
+def test_a_rig_that_cannot_be_opened_is_one_line_not_a_traceback(tmp_path):
+    text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
+    rig = tmp_path / "rig.toml"
+    rig.write_text(text.replace('port = "sim://stage"', f'port = "{tmp_path}/no-such-tty"'))
+    assert "no-such-tty" in rig.read_text()
+    res = capture("--sat", "voyager", "--build", "B2", "--light", "weak", "--rig", str(rig),
+                  "--out", str(tmp_path / "data"), timeout=60)
+    assert res.returncode == EXIT_UNREACHABLE, res.stderr[-2000:]
+    (line,) = res.stderr.strip().splitlines()[-1:]
+    assert line.startswith("error: cannot open stage") and "no-such-tty" in line and "missing port" in line
+    assert "Traceback" not in res.stderr
+    assert list_sessions(tmp_path / "data") == []  # nothing was created before the rig opened

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-
 from api_support import daemon, long_sweep, sweep
+
 from m2s2hil.processing.calibration import load_calibration
 from m2s2hil.rig.live_view import HIST_BINS
 
@@ -196,7 +196,7 @@ def test_plan_estimate_matches_the_plan(d) -> None:
     assert out["frames"] == 2 * 12 and out["estimate_s"] == pytest.approx(est.total_s)
     assert 0 < out["lower_bound_s"] <= out["estimate_s"]
     assert d.client.post("/plans/estimate", json={**body, "azimuth_step_deg": 0.001}).status_code == 422
-    assert list(d.root.iterdir()) == [] or not any(p.is_dir() and p.name[0].isdigit() for p in d.root.iterdir())
+    assert not [p for p in d.root.iterdir() if p.is_dir() and p.name[:1].isdigit()]  # no session made
 
 
 def test_session_browser_reads_without_writing(d) -> None:
@@ -212,6 +212,8 @@ def test_session_browser_reads_without_writing(d) -> None:
     e = d.client.post(f"/sessions/{sid}/export", json={"layout": "m2s2"})
     assert e.status_code == 201, e.text
     assert e.json()["images"] == 4 and Path(e.json()["folder"]).is_dir()
+    z = d.client.post(f"/sessions/{sid}/export", json={"layout": "zarr"})
+    assert z.status_code == 201 and z.json()["images"] == 4, z.text
     after = {p: p.stat().st_mtime_ns for p in folder.rglob("*") if p.is_file()}
     assert {p for p in after if "journal" not in p.name} == {p for p in before if "journal" not in p.name}
     assert all(after[p] == before[p] for p in before if p in after and "journal" not in p.name)

@@ -12,7 +12,8 @@ from pathlib import Path
 
 from engine_helpers import assert_rig_safe, small_rig_config, small_sweep
 
-from m2s2hil.engine.runner import Engine, interrupted_sessions
+from m2s2hil.engine.build import build_run
+from m2s2hil.engine.runner import interrupted_sessions
 from m2s2hil.engine.state import RunState
 from m2s2hil.rig.factory import open_simulated_rig
 from m2s2hil.store.session import SessionStore
@@ -25,22 +26,23 @@ CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {tests!r})
     from engine_helpers import small_rig_config, small_sweep
-    from m2s2hil.engine.runner import Engine
+    from m2s2hil.engine.build import build_run
+    from m2s2hil.engine.options import EngineOptions
     from m2s2hil.engine.state import FrameStored
     from m2s2hil.rig.factory import open_simulated_rig
-    from m2s2hil.store.session import SessionStore
 
     cfg = small_rig_config()
     sweep = small_sweep(azimuth_step_deg=45)
     rig = open_simulated_rig(cfg)
-    store = SessionStore.create({root!r}, sweep, cfg, session_id="crashy", clock=rig.clock)
 
     def on_event(e):
         if isinstance(e, FrameStored):
             print("stored", e.event_id, flush=True)
             time.sleep(0.3)
 
-    Engine(rig, store, sweep, on_event=on_event, process_depth=1, store_depth=1).run()
+    options = EngineOptions(process_depth=1, store_depth=1)
+    build_run(rig, {root!r}, sweep=sweep, session_id="crashy", options=options, capture_qc=False,
+              on_event=on_event).run()
     print("finished", flush=True)
 """)
 
@@ -77,7 +79,7 @@ def test_kill_9_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path) -
     assert interrupted_sessions(root) == ["crashy"]  # what a restarted daemon picks up
     rig = open_simulated_rig(cfg)
     try:
-        engine = Engine.resume_session(rig, root, "crashy")
+        engine = build_run(rig, root, resume="crashy", capture_qc=False)
         assert engine.status().done == len(before)
         final = engine.run()
         assert final.state is RunState.COMPLETED and final.done == final.total == len(planned)
@@ -100,14 +102,49 @@ def test_kill_9_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path) -
 def test_resume_refuses_a_different_rig(tmp_path) -> None:
     import pytest
 
-    from m2s2hil.errors import UsageError
+    from m2s2hil.engine.build import RigChanged
 
     cfg = small_rig_config()
     SessionStore.create(tmp_path, small_sweep(), cfg, session_id="s").close()
     other = small_rig_config(size=512)
     rig = open_simulated_rig(other)
     try:
-        with pytest.raises(UsageError, match="different rig configuration"):
-            Engine.resume_session(rig, tmp_path, "s")
+        with pytest.raises(RigChanged, match="different rig configuration"):
+            build_run(rig, tmp_path, resume="s")
     finally:
         rig.close()
+
+
+def test_a_session_another_process_writes_cannot_be_resumed_here(tmp_path) -> None:
+    """The owner lock is a real inter-process lock: while a second process holds the session
+    open for writing, a resume here is refused with one line naming that process."""
+    import pytest
+
+    from m2s2hil.store.session import SessionLocked
+
+    cfg = small_rig_config()
+    SessionStore.create(tmp_path, small_sweep(), cfg, session_id="busy").close()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(f"""
+            import sys
+            from m2s2hil.store.session import SessionStore
+            st = SessionStore.open({str(tmp_path)!r}, "busy", mode="write")
+            print("holding", flush=True)
+            sys.stdin.readline()
+            st.close()
+        """)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        rig = open_simulated_rig(cfg)
+        try:
+            with pytest.raises(SessionLocked, match=f"process {holder.pid}"):
+                build_run(rig, tmp_path, resume="busy", capture_qc=False)
+            assert rig.world.lamps_on() == frozenset()
+        finally:
+            rig.close()
+    finally:
+        holder.communicate("\n", timeout=30)
+    # once the holder has gone, the session is ours
+    SessionStore.open(tmp_path, "busy", mode="write").close()

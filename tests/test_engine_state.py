@@ -29,6 +29,7 @@ S = RunState
 ALLOWED = {
     (S.IDLE, S.RUNNING), (S.IDLE, S.FAILED),
     (S.RUNNING, S.PAUSING), (S.RUNNING, S.ABORTING), (S.RUNNING, S.COMPLETED), (S.RUNNING, S.FAILED),
+    (S.RUNNING, S.COMPLETED_WITH_GAPS),
     (S.PAUSING, S.PAUSED), (S.PAUSING, S.ABORTING), (S.PAUSING, S.FAILED),
     (S.PAUSED, S.RUNNING), (S.PAUSED, S.ABORTING), (S.PAUSED, S.FAILED),
     (S.ABORTING, S.ABORTED), (S.ABORTING, S.FAILED),
@@ -48,7 +49,7 @@ def test_transition_table(old: RunState, new: RunState) -> None:
 
 
 def test_terminal_states_have_no_way_out() -> None:
-    assert {s for s in S if s.terminal} == {S.COMPLETED, S.FAILED, S.ABORTED}
+    assert {s for s in S if s.terminal} == {S.COMPLETED, S.COMPLETED_WITH_GAPS, S.FAILED, S.ABORTED}
     assert all(not TRANSITIONS[s] for s in S if s.terminal)
 
 

@@ -9,9 +9,7 @@ import json
 import cv2
 import numpy as np
 import pytest
-import tifffile
-import typer
-from typer.testing import CliRunner
+from cli_support import run_cli
 
 from m2s2hil.analysis import SpectralSegmenter, match_clusters, segmentation_scores
 from m2s2hil.analysis.evaluate import (
@@ -23,7 +21,6 @@ from m2s2hil.analysis.evaluate import (
     write_evaluation,
 )
 from m2s2hil.analysis.parallel import SchedulerUnavailable, dask_client
-from m2s2hil.commands import evaluate as evaluate_commands
 from m2s2hil.store.export import export_session
 from m2s2hil.store.session import SessionStore
 
@@ -63,7 +60,8 @@ def majority_by_loops(lab: np.ndarray, n: int) -> np.ndarray:
 
 def test_jobs_come_with_truth_labels_stored_by_the_engine(evaluated):
     jobs, res, _, _ = evaluated
-    assert len(jobs) == 8 and all(j.labels is not None and j.cube is not None for j in jobs)
+    # cubes are computed from raw + dark when read (issue 14), not stored
+    assert len(jobs) == 8 and all(j.labels is not None and j.raw is not None and j.dark for j in jobs)
     assert {j.lighting for j in jobs} == {"weak", "directional"} and all(j.n_classes == 5 for j in jobs)
     assert not res.errors and res.has_truth
     for r in res.records:
@@ -72,12 +70,12 @@ def test_jobs_come_with_truth_labels_stored_by_the_engine(evaluated):
         assert 0.0 < r["results"]["spectral"]["mtc"] <= 1.0 and "mtc" not in r["results"]["rgb"]
 
 
-def test_scores_match_an_independent_recomputation(evaluated):
+def test_scores_match_an_independent_recomputation(evaluated, session):
     """Read the stored files ourselves, reduce the labels with plain loops, segment and score."""
     jobs, res, _, _ = evaluated
     job, r = jobs[3], res.records[3]
-    with tifffile.TiffFile(job.cube.path, is_shaped=False) as tf:
-        cube = tf.asarray().astype(np.float32)
+    with SessionStore.open_path(session) as st:  # the store's own cube, computed from raw + dark
+        cube = st.read_cube(job.image_id.split("/", 1)[1])
     full = cv2.imread(job.labels.path, cv2.IMREAD_UNCHANGED)
     gt = majority_by_loops(full, full.shape[0] // cube.shape[1])
     pred = SpectralSegmenter().segment(cube)
@@ -159,35 +157,25 @@ def test_scheduler_address_errors():
         pass
 
 
-def cli() -> typer.Typer:
-    app = typer.Typer()
-    app.command("evaluate")(evaluate_commands.evaluate_cmd)
-    app.command("report")(evaluate_commands.report_cmd)
-    return app
-
-
 def test_cli_evaluate_and_report(session, tmp_path):
     out = tmp_path / "ev"
-    res = CliRunner().invoke(
-        cli(),
-        ["evaluate", str(session), "--out", str(out), "--workers", "0", "--limit", "2", "--mtc", "none"],
-    )
+    res = run_cli("evaluate", session, "--out", out, "--workers", "0", "--limit", "2", "--mtc", "none")
     assert res.exit_code == 0, res.output
     assert "| Voyager | B2 | 5 | E0 | 2 |" in res.output
     assert (out / "table2.md").is_file() and (out / "table2.png").is_file() and not (out / "mtc.png").exists()
     html = tmp_path / "r.html"
-    res = CliRunner().invoke(cli(), ["report", "sim-eval", "--root", str(session.parent), "--out", str(html)])
+    res = run_cli("report", "sim-eval", "--root", session.parent, "--out", html)
     assert res.exit_code == 0, res.output
     assert "QC: 8 frame(s)" in res.output and html.is_file()
 
 
 def test_cli_rejects_bad_input(session, tmp_path):
-    res = CliRunner().invoke(cli(), ["evaluate", str(tmp_path / "nothing"), "--workers", "0"])
-    assert isinstance(res.exception, EvaluationError)
-    res = CliRunner().invoke(cli(), ["evaluate", str(session), "--segmenter", "rgb", "--workers", "0"])
-    assert res.exception is not None and "RGB baseline" in str(res.exception)
-    res = CliRunner().invoke(cli(), ["evaluate", str(session), "--reprocess", "bogus", "--workers", "0"])
-    assert res.exception is not None and "bogus" in str(res.exception)
+    res = run_cli("evaluate", tmp_path / "nothing", "--workers", "0")
+    assert res.exit_code == EvaluationError.exit_code == 2 and res.stderr.startswith("error: "), res.output
+    res = run_cli("evaluate", session, "--segmenter", "rgb", "--workers", "0")
+    assert res.exit_code == 2 and "RGB baseline" in res.stderr, res.output
+    res = run_cli("evaluate", session, "--reprocess", "bogus", "--workers", "0")
+    assert res.exit_code == 2 and "bogus" in res.stderr, res.output
 
 
 def test_exported_dataset_without_labels_gets_mtc_only(tmp_path):

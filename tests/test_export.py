@@ -1,17 +1,21 @@
-"""Export: the published M2S2 layout (8-bit and lossless 16-bit) and a Hugging Face image folder."""
+"""Export: the published M2S2 layout (8-bit and lossless 16-bit); the hf layout is in test_export_hf.py."""
 
 from __future__ import annotations
 
 import csv
 import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-import typer
-from typer.testing import CliRunner
+from cli_support import run_cli
 
-from m2s2hil.commands import export as export_cmd
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.plan import Sweep
 from m2s2hil.store.export import ExportError, export_session, to_8bit
@@ -118,49 +122,78 @@ def test_existing_files_are_not_overwritten_unless_asked(tmp_path):
     st.close()
 
 
-def test_hf_image_folder_loads_offline_with_datasets(tmp_path, monkeypatch):
-    monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf-home"))
-    datasets = pytest.importorskip("datasets")
-    monkeypatch.setattr(datasets.config, "HF_DATASETS_OFFLINE", True, raising=False)
-    a, raws_a = make_session(tmp_path / "data", "hubble", "B2")
-    b, raws_b = make_session(tmp_path / "data", "iss", "B1")
-    out = tmp_path / "hf"
-    export_session(a, out, "hf")
-    export_session(b, out, "hf")  # a second session merges into the same folder
-    ds = datasets.load_dataset("imagefolder", data_dir=str(out), cache_dir=str(tmp_path / "cache"))
-    train = ds["train"]
-    assert train.num_rows == 32
-    assert {"image", "satellite", "build", "lighting", "azimuth_deg", "exposure_s"} <= set(train.column_names)
-    raws = {**raws_a, **raws_b}
-    for i in (0, 17, 31):
-        row = train[i]
-        arr = np.array(row["image"])
-        assert arr.dtype == np.uint16 and np.array_equal(arr, raws[row["event_id"]])
-    assert sorted(set(train["satellite"])) == ["Hubble", "ISS"]
-    a.close()
-    b.close()
-
-
 def test_cli_export_by_id_and_by_folder(tmp_path):
     st, _ = make_session(tmp_path / "data", session_id="cli1")
     st.close()
-    umbrella = typer.Typer()
-    umbrella.add_typer(export_cmd.app, name="export")
-    runner = CliRunner()
-    res = runner.invoke(umbrella, ["export", "cli1", "--layout", "m2s2", "--out", str(tmp_path / "o1"),
-                                   "--root", str(tmp_path / "data")])
+    res = run_cli("export", "cli1", "--layout", "m2s2", "--out", tmp_path / "o1", "--root", tmp_path / "data")
     assert res.exit_code == 0, res.output
     assert "exported 16 image(s)" in res.output
     assert (tmp_path / "o1" / "HIL" / "Hubble" / "b2" / "e2" / "dir_3.png").is_file()
-    res = runner.invoke(umbrella, ["export", str(tmp_path / "data" / "cli1"), "--layout", "hf",
-                                   "--out", str(tmp_path / "o2")])
+    res = run_cli("export", tmp_path / "data" / "cli1", "--layout", "hf", "--out", tmp_path / "o2")
     assert res.exit_code == 0, res.output
-    assert (tmp_path / "o2" / "train" / "metadata.csv").is_file()
-    res = runner.invoke(umbrella, ["export", "cli1", "--layout", "tar", "--out", str(tmp_path / "o3"),
-                                   "--root", str(tmp_path / "data")])
-    assert res.exit_code != 0 and "--layout must be one of" in str(res.exception)
-    res = runner.invoke(umbrella, ["export", "missing", "--out", str(tmp_path / "o4"),
-                                   "--root", str(tmp_path / "data")])
-    assert res.exit_code != 0 and "no session 'missing'" in str(res.exception)
+    assert (tmp_path / "o2" / "data" / "train-cli1.parquet").is_file()
+    res = run_cli("export", "cli1", "--layout", "tar", "--out", tmp_path / "o3", "--root", tmp_path / "data")
+    assert res.exit_code == 2 and "--layout must be one of" in res.stderr
+    res = run_cli("export", "missing", "--out", tmp_path / "o4", "--root", tmp_path / "data")
+    assert res.exit_code == 2 and "no session 'missing'" in res.stderr
+
+
+def _snapshot(folder) -> dict[str, tuple[int, int]]:
+    return {p.relative_to(folder).as_posix(): (p.stat().st_mtime_ns, p.stat().st_size)
+            for p in sorted(folder.rglob("*"))}
+
+
+EXPORT_AS_NOBODY = """
+import sys
+from m2s2hil.store.export import export_session
+from m2s2hil.store.session import SessionStore
+with SessionStore.open_path(sys.argv[1]) as st:
+    print(export_session(st, sys.argv[2], sys.argv[3]).images)
+"""
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,
+                    reason="needs root to run the export as another user (setpriv)")
+@pytest.mark.slow  # a subprocess: ~8 s
+def test_an_archived_read_only_session_exports_and_is_left_untouched(layout="m2s2"):
+    """The export runs as an unprivileged user on a session folder that user cannot write
+    (root ignores permissions, so it would not prove anything)."""
+    base = Path(tempfile.mkdtemp(prefix="m2s2hil-ro-", dir="/tmp"))
+    try:
+        base.chmod(0o755)
+        st, _ = make_session(base / "data", session_id="ro")
+        st.complete()
+        st.close()
+        (base / "data").chmod(0o755)
+        folder = base / "data" / "ro"
+        for p in [folder, *folder.rglob("*")]:
+            p.chmod(0o555 if p.is_dir() else 0o444)
+        out = base / "out"
+        out.mkdir(mode=0o777)
+        out.chmod(0o777)
+        before = _snapshot(folder)
+        env = {**os.environ, "HOME": str(out), "HF_HOME": str(out / ".hf"), "HF_DATASETS_OFFLINE": "1",
+               "NUMBA_CACHE_DIR": str(out / ".numba"), "MPLCONFIGDIR": str(out / ".mpl")}
+        res = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable,
+                              "-c", EXPORT_AS_NOBODY, str(folder), str(out / "x"), layout],
+                             capture_output=True, text=True, env=env, cwd=str(out), timeout=120)
+        assert res.returncode == 0, res.stderr[-2000:]
+        assert res.stdout.strip().splitlines()[-1] == "16"
+        assert _snapshot(folder) == before  # no journal event, no -shm/-wal, nothing written
+    finally:
+        for p in [base, *base.rglob("*")]:
+            p.chmod(0o755 if p.is_dir() else 0o644)
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.mark.parametrize("layout", ["m2s2", "hf"])
+def test_exporting_records_nothing_in_the_session(tmp_path, layout):
+    st, _ = make_session(tmp_path / "data", session_id="ro")
+    st.complete()
+    st.close()
+    with SessionStore.open_path(tmp_path / "data" / "ro") as ro:
+        n_events = len(ro.events())
+        export_session(ro, tmp_path / "out", layout)
+    with SessionStore.open_path(tmp_path / "data" / "ro") as ro:
+        assert len(ro.events()) == n_events
+        assert not [e for e in ro.events() if e["kind"] == "export"]

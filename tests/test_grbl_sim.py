@@ -263,8 +263,17 @@ def test_g10_l20_sets_a_persistent_work_origin(vclock):
     assert host.io(b"$#\n")[0].text == "7.000,0.000,0.000"
     assert host.io(b"G10 L2 P1 X-2.5\n") == [Ok()]
     assert host.io(b"$#\n")[0].text == "-2.500,0.000,0.000"
+    assert host.io(b"G10 L20 Y1\n") == [Ok()]  # no P: the active system (G54)
+    assert host.io(b"G10 L2 P2 Z4\n") == [Ok()]  # G55 is stored, though only G54 can be active here
+    g54, g55 = host.io(b"$#\n")[:2]
+    assert (g54.text, g55.tag, g55.text) == ("-2.500,-1.000,0.000", "G55", "0.000,0.000,4.000")
     assert host.io(b"$RST=#\n") == [Message("Restoring defaults"), Ok(), Banner("1.1h")]
     assert host.io(b"$#\n")[0].text == "0.000,0.000,0.000"
+    host.io(b"$110=123\n$I=bench\nG10 L2 P1 X4\n")
+    host.io(b"$RST=$\n")  # settings only (GRBL upper-cases every line, $I text too)
+    assert sim.settings[110] == 600.0 and sim.coord_data[54][0] == 4.0 and sim.build_text == "BENCH"
+    host.io(b"$RST=*\n")  # everything in EEPROM
+    assert sim.coord_data[54][0] == 0.0 and sim.build_text == ""
 
 
 def test_g10_waits_for_motion_to_finish(vclock):
@@ -276,10 +285,11 @@ def test_g10_waits_for_motion_to_finish(vclock):
 
 @pytest.mark.parametrize(
     "line, code",
-    [(b"G10 P1 X0\n", GrblError.VALUE_WORD_MISSING), (b"G10 L20 X0\n", GrblError.VALUE_WORD_MISSING),
-     (b"G10 L20 P7 X0\n", GrblError.UNSUPPORTED_COORD_SYSTEM),
+    [(b"G10 X0\n", GrblError.VALUE_WORD_MISSING), (b"G10 P1 X0\n", GrblError.UNSUPPORTED_COMMAND),
+     (b"G10 L20 P7 X0\n", GrblError.UNSUPPORTED_COORD_SYSTEM), (b"G10 L2 P9\n", GrblError.NO_AXIS_WORDS),
      (b"G10 L1 P1 X0\n", GrblError.UNSUPPORTED_COMMAND), (b"G10 L20 P1\n", GrblError.NO_AXIS_WORDS),
-     (b"G0 G10 L20 P1 X0\n", GrblError.AXIS_COMMAND_CONFLICT)],
+     (b"G0 G10 L20 P1 X0\n", GrblError.AXIS_COMMAND_CONFLICT),
+     (b"G10 L20 P-1 X0\n", GrblError.NEGATIVE_VALUE)],
 )  # fmt: skip
 def test_g10_errors(vclock, line, code):
     _, host = make(vclock)
@@ -344,3 +354,27 @@ def test_trapezoid_profile_is_consistent(length, v_max, accel, v0, fractions):
     assert all(p.speed(t) <= max(v_max, v0) + 1e-9 for t in times)
     for s in (length * f for f in fractions):
         assert p.distance(p.time_at(s)) == pytest.approx(s, abs=1e-6 * max(1, length))
+
+
+def test_rig_options_commission_the_simulated_controller(vclock):
+    from types import SimpleNamespace
+
+    from m2s2hil.simulators.grbl import grbl_sim_for
+
+    turntable = SimpleNamespace(axis="x", units_per_degree=2.0, max_speed_dps=60.0, accel_dps2=120.0,
+                                min_deg=-370.0, max_deg=370.0)
+    axes = {"turntable": turntable}
+    factory = grbl_sim_for("g1", axes, vclock, None, None, {"factory_rates": True})
+    assert (factory.settings[22], factory.settings[110], factory.settings[120]) == (0, 500.0, 10.0)
+    assert factory.state == "Idle"
+    rig = grbl_sim_for("g2", axes, vclock, None, None,
+                       {"homing_switches": True, "settings": {"$111": 99, "25": 1000}, "version": "1.1f"})
+    # Commissioned to the rig file: 60°/s × 2 units/° × 60 s/min, 120°/s² × 2, twice the widest limit.
+    assert (rig.settings[110], rig.settings[120], rig.settings[130]) == (7200.0, 240.0, 1480.0)
+    assert (rig.settings[22], rig.settings[111], rig.settings[25], rig.version) == (1.0, 99.0, 1000.0, "1.1f")
+    assert rig.state == "Alarm"  # homing on: boots locked
+    for bad, match in (({"homing": True}, "unknown GRBL simulator option"),
+                       ({"settings": {"$110": "fast"}}, "expected a number"),
+                       ({"settings": {"$999": 1}}, "no setting"), ({"settings": [1]}, "table")):
+        with pytest.raises(ValueError, match=match):
+            grbl_sim_for("g3", axes, vclock, None, None, bad)

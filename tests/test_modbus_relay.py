@@ -5,12 +5,12 @@ from __future__ import annotations
 import threading
 
 import pytest
+from m2s2hil.drivers.clock import SystemClock
 from m2s2hil.drivers.errors import (
     CommandRejected,
     DeviceGone,
     DeviceTimeout,
     ProtocolError,
-    RelayNotSwitched,
 )
 from m2s2hil.drivers.interfaces import LightBank
 from m2s2hil.drivers.modbus_relay import ModbusRelayBoard
@@ -22,7 +22,6 @@ from m2s2hil.protocols.modbus_relay import (
     WriteCoils,
 )
 from m2s2hil.simulators import registry
-from m2s2hil.simulators.clock import RealClock
 from m2s2hil.simulators.modbus_relay import ModbusRelaySim
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice
@@ -255,63 +254,7 @@ def test_sim_answers_any_split_of_a_request(vclock):
 
 
 # -- faults ----------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("kind", ["drop_reply", "garble", "late_reply"])
-def test_one_off_faults_are_recovered(rig, kind):
-    board, sim, world = rig
-    sim.faults.add(kind)
-    board.set([1, 3])
-    assert board.state() == {1, 3} == world.lamps_on()
-    assert [k for k, _ in sim.faults.log] == [kind]
-
-
-@pytest.mark.parametrize(
-    ("kind", "error"),
-    [("drop_reply", DeviceTimeout), ("garble", ProtocolError), ("late_reply", DeviceTimeout)],
-)
-def test_persistent_faults_end_in_typed_errors(rig, kind, error):
-    board, sim, _ = rig
-    sim.faults.add(kind, count=-1)
-    with pytest.raises(error) as err:
-        board.set([2])
-    assert err.value.attempt == 3 and err.value.device == "relays"
-    assert err.value.command == "set [2]"
-
-
-def test_relay_stuck_is_relay_not_switched(rig):
-    board, sim, world = rig
-    board.set([4])
-    sim.faults.add("relay_stuck", channel=4)
-    with pytest.raises(RelayNotSwitched, match=r"stuck: \[4\]") as err:
-        board.set([0])
-    assert err.value.fault_class == "protocol"
-    assert sim.on_channels == {0, 4} == world.lamps_on()  # the board acked, coil 4 stayed on
-    board.set([0])  # the fault was a one-off: the next write goes through
-    assert world.lamps_on() == {0}
-
-
-def test_relay_stuck_on_switch(rig):
-    board, sim, _ = rig
-    sim.faults.add("relay_stuck", channel=6)
-    with pytest.raises(RelayNotSwitched, match="channel 6 reads off"):
-        board.switch(6, True)
-
-
-def test_vanish_is_recovered_by_reconnecting(rig, vclock):
-    board, sim, world = rig
-    board.set([1])
-    sim.faults.add("vanish", duration_s=1.0)
-    board.set([2])
-    assert board.state() == {2} == world.lamps_on()
-    assert vclock.monotonic() >= 1.0
-
-
-def test_vanish_for_good_is_device_gone(rig):
-    board, sim, _ = rig
-    board.state()
-    sim.faults.add("vanish", duration_s=1e6)
-    with pytest.raises(DeviceGone) as err:
-        board.set([2])
-    assert err.value.attempt == 3 and err.value.fault_class == "device_gone"
+# The injected faults of tests/test_relay_faults.py run against this board and the ASCII one.
 
 
 def test_missing_port_is_device_gone_at_once(vclock):
@@ -322,21 +265,9 @@ def test_missing_port_is_device_gone_at_once(vclock):
     assert vclock.monotonic() == 0.0
 
 
-def test_fault_plan_from_config_reaches_the_board(vclock):
-    from m2s2hil.simulators.fault_injection import FaultPlan
-
-    plan = FaultPlan.from_config([{"kind": "relay_stuck", "channel": 3, "count": -1}])
-    sim = ModbusRelaySim("mb-cfg", vclock, plan)
-    registry.register("mb-cfg", sim)
-    board = ModbusRelayBoard("sim://mb-cfg", clock=vclock)
-    board.set([1])
-    with pytest.raises(RelayNotSwitched):
-        board.set([3])
-
-
 # -- over a pseudo-terminal, in real time --------------------------------------------------------------
 def test_driver_against_simulator_on_a_pty():
-    clock = RealClock()
+    clock = SystemClock()
     log: list[tuple[int, bool]] = []
     sim = ModbusRelaySim("mb-pty", clock, on_change=lambda ch, on: log.append((ch, on)))
     with PtyServer(sim) as srv:
@@ -355,7 +286,7 @@ def test_driver_against_simulator_on_a_pty():
 def test_concurrent_callers_do_not_interleave_transactions():
     # Real time on a pty, no retries: without the driver's lock the threads' requests and
     # read-backs cross on the line and a caller gets a reply meant for another.
-    clock = RealClock()
+    clock = SystemClock()
     sim = ModbusRelaySim("mb-threads", clock, response_delay_s=0.002)
     errors: list[Exception] = []
     with PtyServer(sim) as srv:

@@ -15,9 +15,9 @@ import tty
 from collections.abc import Iterator
 
 import pytest
+from m2s2hil.drivers.clock import SystemClock
 from m2s2hil.drivers.errors import CommandRejected
 from m2s2hil.drivers.modbus_relay import ModbusRelayBoard
-from m2s2hil.simulators.clock import RealClock
 from m2s2hil.simulators.modbus_relay import ModbusRelaySim
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.world import World
@@ -30,7 +30,7 @@ pytestmark = pytest.mark.timeout(30)
 
 # -- (a) stock client, our simulator ------------------------------------------------------------------
 def test_stock_pymodbus_client_drives_our_simulator():
-    clock = RealClock()
+    clock = SystemClock()
     world = World(clock)
     sim = ModbusRelaySim("interop-a", clock, unit=1, on_change=world.set_lamp)
     with PtyServer(sim) as srv:
@@ -149,7 +149,7 @@ def stock_server(port: str, unit: int) -> Iterator[SimDevice]:
 
 def test_our_driver_drives_a_stock_pymodbus_server():
     with pty_bridge() as (server_port, driver_port), stock_server(server_port, unit=1):
-        board = ModbusRelayBoard(driver_port, clock=RealClock(), timeout_s=1.0)
+        board = ModbusRelayBoard(driver_port, clock=SystemClock(), timeout_s=1.0)
         try:
             board.connect()
             assert board.state() == frozenset()
@@ -162,7 +162,7 @@ def test_our_driver_drives_a_stock_pymodbus_server():
             assert board.state() == frozenset()
 
             # 17 coils: coil 16 is past the server's block -> its exception code, typed
-            wide = ModbusRelayBoard(driver_port, clock=RealClock(), timeout_s=1.0, channels=17)
+            wide = ModbusRelayBoard(driver_port, clock=SystemClock(), timeout_s=1.0, channels=17)
             board.close()
             with pytest.raises(CommandRejected) as err:
                 wide.state()

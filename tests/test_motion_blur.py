@@ -196,7 +196,7 @@ def test_the_camera_exposes_over_its_exposure_interval(tmp_path) -> None:
         before = rig.clock.monotonic()
         frame = rig.camera.snap(timeout=5)
         after = rig.clock.monotonic()
-        truth = rig.extras["frame_source"].truth()
+        truth = rig.frame_source.truth()
         az_now = rig.turntable.position()
         rig.turntable.stop()
         start = truth.exposure_start_s
@@ -206,7 +206,7 @@ def test_the_camera_exposes_over_its_exposure_interval(tmp_path) -> None:
         # mid-exposure lies at least half an exposure before the frame arrived
         assert az_now - truth.azimuth_deg >= 60.0 * exposure / 2 - 1e-6
         assert truth.sub_exposures > 1 and truth.motion_px == pytest.approx(
-            rig.extras["frame_source"].rim_px * math.radians(60.0 * exposure), rel=1e-3)
+            rig.frame_source.rim_px * math.radians(60.0 * exposure), rel=1e-3)
         assert frame.data.shape == (256, 256)
     finally:
         rig.close()

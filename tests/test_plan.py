@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.plan import (
-    AutoExposure,
+    AutoExposureSettings,
     PlanError,
     Sweep,
     commanded_azimuths,
@@ -68,7 +68,7 @@ def test_json_round_trip_keeps_every_field():
 
 def test_auto_exposure_shorthand_round_trips():
     s = Sweep(satellite="iss", build="B1", exposure="auto")
-    assert isinstance(s.exposure, AutoExposure)
+    assert isinstance(s.exposure, AutoExposureSettings)
     assert (s.exposure.target_fraction, s.exposure.percentile) == (0.9, 99.9)
     assert Sweep.from_json(s.to_json()) == s
     assert json.loads(s.to_json())["exposure"]["mode"] == "auto"
@@ -79,7 +79,7 @@ def test_auto_exposure_shorthand_round_trips():
     [
         ({"satellite": "hubbel", "build": "B1"}, "satellite", "did you mean 'hubble'"),
         ({"satellite": "hubble", "build": "B7"}, "build", "unknown build"),
-        ({"satellite": "hubble", "build": "B1", "lighting": ["all"]}, "lighting", "'all' is not"),
+        ({"satellite": "hubble", "build": "B1", "lighting": ["moon"]}, "lighting", "unknown lighting"),
         ({"satellite": "hubble", "build": "B1", "lighting": ["weak", "Weak"]}, "lighting", "twice"),
         ({"satellite": "hubble", "build": "B1", "tilts": ["E3"]}, "tilts", "unknown elevation"),
         ({"satellite": "hubble", "build": "B1", "axis_order": "light>tilt"}, "axis_order", "once each"),

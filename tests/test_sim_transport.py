@@ -2,10 +2,10 @@
 
 import pytest
 import serial
+from m2s2hil.drivers.clock import SystemClock
 from m2s2hil.drivers.errors import DeviceGone, DeviceTimeout
 from m2s2hil.drivers.serial_link import SerialLink
 from m2s2hil.simulators import registry
-from m2s2hil.simulators.clock import RealClock
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice, ScriptError
 
@@ -53,7 +53,7 @@ def test_vanish_and_reconnect(vclock):
 
 
 def test_pty_serves_stock_pyserial():
-    dev = ScriptedDevice("p", RealClock(), [(b"ping\n", b"pong\n")])
+    dev = ScriptedDevice("p", SystemClock(), [(b"ping\n", b"pong\n")])
     with PtyServer(dev) as srv:
         port = serial.Serial(srv.path, 115200, timeout=2)
         port.write(b"ping\n")

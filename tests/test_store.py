@@ -15,9 +15,10 @@ import pytest
 import tifffile
 
 import m2s2hil.store.atomic as atomic
-from m2s2hil.config import RigConfig, default_rig
+from m2s2hil.config import RigConfig, StorageConfig, default_rig
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.plan import Sweep
+from m2s2hil.store.frame_meta import MetadataConflict
 from m2s2hil.store.session import (
     DiskFull,
     DuplicateEvent,
@@ -99,7 +100,7 @@ def test_generated_session_id_names_the_sweep(tmp_path, sweep, rig):
 def test_frame_files_checksums_and_tiff_metadata(store):
     ev = frame_events(store)[1]
     rec = write(store, ev, 3)
-    assert set(rec.files) == {"raw", "cube", "preview"}
+    assert set(rec.files) == {"raw", "preview"}  # the cube is computed when read (test_storage_format.py)
     for f in rec.files.values():
         data = (store.path / f.path).read_bytes()
         assert hashlib.sha256(data).hexdigest() == f.sha256 and len(data) == f.bytes
@@ -113,8 +114,7 @@ def test_frame_files_checksums_and_tiff_metadata(store):
     assert desc["temperature_c"] == 31.5 and desc["pose"]["turntable_deg"] == ev.azimuth_deg
     assert desc["rig_digest"] == store.rig.digest and desc["software_version"]
     assert desc["dark_id"] == ev.dark_id and desc["processing_method"] == "superpixel"
-    cube = tifffile.imread(store.path / rec.files["cube"].path)
-    assert cube.shape == (10, N // 4, N // 4) and cube.dtype == np.float32
+    assert desc["cube"]["stored"] is False and desc["cube"]["method"] == "superpixel"
     assert store.frames()[0].meta == desc  # the journal holds the same metadata
     assert store.verify() == []
 
@@ -178,7 +178,7 @@ def test_reopen_for_resume_knows_what_is_done(tmp_path, sweep, rig):
     st.record_event("note", {"text": "lamp 4 replaced"})
     st.close()
 
-    st = SessionStore.open(tmp_path, "r1")
+    st = SessionStore.open(tmp_path, "r1", mode="write")
     assert st.state == "paused"
     assert st.completed_event_ids() == {events[0].event_id, events[1].event_id}
     assert st.skipped_event_ids() == {events[2].event_id}
@@ -247,7 +247,7 @@ def test_crash_between_files_and_commit_leaves_only_an_orphan_that_resume_overwr
     with pytest.raises(KeyboardInterrupt):
         write(st, ev, 0)
     st.close()
-    st = SessionStore.open(tmp_path, "c1")
+    st = SessionStore.open(tmp_path, "c1", mode="write")
     assert ev.event_id not in st.completed_event_ids()
     assert {p.kind for p in st.verify()} == {"orphan"}
     write(st, ev, 5)
@@ -263,8 +263,10 @@ def test_check_free_space_and_frame_size_estimate(tmp_path):
         check_free_space(tmp_path / "not" / "yet", 10**18)
     assert info.value.needed > info.value.free
     m = default_rig().camera.model
-    assert estimate_frame_bytes(default_rig()) == 2048 * 2048 * 2 + 10 * 512 * 512 * 4 + 512 * 512 * 3 + 65536
-    assert estimate_frame_bytes(default_rig(), "ppid") > 10 * m.width * m.height * 4
+    # deflate-compressed 10-bit raw (at most 10 bits a pixel + 5 %), no stored cube, RGB preview
+    assert estimate_frame_bytes(default_rig()) == int(2048 * 2048 * 10 / 8 * 1.05) + 512 * 512 * 3 + 65536
+    cached = default_rig().model_copy(update={"storage": StorageConfig(cubes=True)})
+    assert estimate_frame_bytes(cached, "ppid") > 10 * m.width * m.height * 4
 
 
 def test_disk_full_before_writing_when_space_is_short(store, monkeypatch):
@@ -299,7 +301,7 @@ def test_manifest_and_completion(store):
     man = store.complete()
     on_disk = json.loads((store.path / "manifest.json").read_text())
     assert on_disk == man and store.state == "completed" and man["state"] == "completed"
-    assert len(man["files"]) == 4 * 3 + 1
+    assert len(man["files"]) == 4 * 2 + 1  # raw + preview per frame (cubes are computed), the dark
     for f in man["files"]:
         assert hashlib.sha256((store.path / f["path"]).read_bytes()).hexdigest() == f["sha256"]
 
@@ -313,7 +315,7 @@ def test_open_errors_and_listing(tmp_path, sweep, rig):
     bad = tmp_path / "bad"
     bad.mkdir()
     (bad / "journal.sqlite").write_bytes(b"this is not a database" * 100)
-    with pytest.raises(SessionCorrupt, match="not a readable session journal"):
+    with pytest.raises(SessionCorrupt, match="journal damaged .*sessions repair bad"):
         SessionStore.open(tmp_path, "bad")
     (tmp_path / "empty").mkdir()
     with pytest.raises(SessionCorrupt, match="no journal"):
@@ -321,7 +323,7 @@ def test_open_errors_and_listing(tmp_path, sweep, rig):
     listed = {s.session_id: s for s in list_sessions(tmp_path)}
     assert set(listed) == {"good", "bad"}
     assert listed["good"].state == "created" and listed["good"].satellite == "hubble"
-    assert listed["bad"].state == "corrupt" and listed["bad"].error
+    assert listed["bad"].state == "damaged" and listed["bad"].error
 
 
 def test_default_data_root(monkeypatch, tmp_path):
@@ -359,9 +361,10 @@ def test_sqlite_full_is_disk_full_and_rolls_back(store):
 
 def test_meta_cannot_forge_provenance_and_nan_becomes_null(store):
     ev = frame_events(store)[0]
+    with pytest.raises(MetadataConflict, match="rig_digest, session_id"):
+        store.write_frame(ev, raw_of(0), meta={"rig_digest": "forged", "session_id": "other"})
     rec = store.write_frame(ev, raw_of(0), meta={
-        "rig_digest": "forged", "session_id": "other", "exposure_s": 0.0123, "temperature_c": float("nan"),
-        "pose": {"turntable_deg": np.float64(1.5)}})
+        "exposure_s": 0.0123, "temperature_c": float("nan"), "pose": {"turntable_deg": np.float64(1.5)}})
     _, desc = store.read_raw(ev.event_id)
     assert desc["rig_digest"] == store.rig.digest and desc["session_id"] == "s1"
     assert desc["exposure_s"] == 0.0123  # the actual exposure overrides the planned one

@@ -336,3 +336,27 @@ def test_garbage_images(raw, fmt, w, h):
     _only_codec_error(u3v.decode_image, raw, fmt, w, h)
     _only_codec_error(u3v.unpack_mono10p, raw, w * h)
     _only_codec_error(u3v.sirm_alignment, fmt)
+
+
+# -- ABRM device capability (GenCP 1.x layout, bit 0 = least significant) ----------------------
+def test_device_capability_bits_hand_checked():
+    from m2s2hil.protocols.u3v_bootstrap import (
+        DeviceCapability,
+        StringEncoding,
+        decode_device_capability,
+        encode_device_capability,
+    )
+
+    # user name (0), timestamp (3), family name (8), SBRM (9), endianness (10), written length (11)
+    value = encode_device_capability(
+        DeviceCapability.USER_DEFINED_NAME | DeviceCapability.TIMESTAMP | DeviceCapability.FAMILY_NAME
+        | DeviceCapability.SBRM | DeviceCapability.ENDIANNESS_REGISTER | DeviceCapability.WRITTEN_LENGTH_FIELD
+    )
+    assert value == 0x0F09
+    flags, encoding = decode_device_capability(0x0F09 | (1 << 4) | (1 << 40))  # UTF-8, a reserved bit
+    assert encoding == StringEncoding.UTF8 and DeviceCapability.SBRM in flags
+    assert DeviceCapability.MESSAGE_CHANNEL not in flags and int(flags) == 0x0F09
+    with pytest.raises(CodecError, match="string encoding 7"):
+        decode_device_capability(0x70)
+    with pytest.raises(CodecError, match="u64"):
+        decode_device_capability(1 << 64)

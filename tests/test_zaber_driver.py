@@ -4,7 +4,7 @@ a pty, and every injected fault ending in its typed error or a recovery."""
 import itertools
 
 import pytest
-from m2s2hil.drivers.clock import SYSTEM_CLOCK
+from m2s2hil.drivers.clock import SYSTEM_CLOCK, SystemClock
 from m2s2hil.drivers.errors import (
     CommandRejected,
     DeviceGone,
@@ -18,7 +18,6 @@ from m2s2hil.drivers.interfaces import RotaryAxis
 from m2s2hil.drivers.zaber import ZaberDevice, open_zaber_axes
 from m2s2hil.protocols.zaber import RejectReason, WarningFlag
 from m2s2hil.simulators import registry
-from m2s2hil.simulators.clock import RealClock
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice
 from m2s2hil.simulators.world import World
@@ -281,7 +280,7 @@ def test_vanished_port_and_reconnect(rotary):
 @pytest.mark.timeout(20)
 def test_driver_over_a_pty():
     fast = ZaberAxisSettings(maxspeed=10**7, accel=10**4)
-    sim = ZaberSimulator("zaber-pty", RealClock(), axes=[fast])
+    sim = ZaberSimulator("zaber-pty", SystemClock(), axes=[fast])
     with PtyServer(sim) as srv:
         zd = ZaberDevice(srv.path, clock=SYSTEM_CLOCK, timeout_s=0.5, poll_interval_s=0.01)
         try:

@@ -128,3 +128,21 @@ def test_reply_ids_stay_in_order_when_one_is_late(dev, vclock):
     assert host.ask(1, "get pos", mid=2) == []
     replies = host.rx.feed(host.raw(b"", wait=1.0))
     assert [r.message_id for r in replies] == [1, 2]
+
+
+def test_identity_settings_that_zaber_motion_reads(dev):
+    from m2s2hil.simulators.zaber import DEVICE_ID, FIRMWARE_BUILD, FIRMWARE_VERSION
+
+    sim, host = dev
+    got = {name: host.one(0, f"get {name}") for name in (
+        "deviceid", "device.id", "system.serial", "version", "version.build", "device.hw.modified",
+        "comm.packet.size.max", "comm.command.packets.max", "comm.word.size.max", "get.settings.max")}
+    assert not any(r.rejected for r in got.values())
+    assert got["deviceid"].data == got["device.id"].data == str(DEVICE_ID)
+    assert (got["version"].data, got["version.build"].data) == (FIRMWARE_VERSION, str(FIRMWARE_BUILD))
+    # Every setting name the device knows fits in one word of the advertised size.
+    longest = max(len(n) for n in (*sim.device_settings, "limit.min", "encoder.pos", "resolution"))
+    assert int(got["comm.word.size.max"].data) == longest == len("comm.command.packets.max")
+    assert host.one(1, "get peripheralid").data == "BADCOMMAND"  # integrated stage: no peripheral
+    other = ZaberSimulator("z2", sim.clock, device_id=12345, version="6.32", build=1234)
+    assert (other.device_settings["deviceid"], other.device_settings["version.build"]) == ("12345", "1234")

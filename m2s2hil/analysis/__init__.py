@@ -32,7 +32,14 @@ from m2s2hil.analysis.errors import (
 from m2s2hil.analysis.matching import ClusterMatch, match_clusters
 from m2s2hil.analysis.metrics import SegmentationScores, micro_iou, score_clusters, segmentation_scores
 from m2s2hil.analysis.mtc import MTCResult, band_fused_predictor, draw_shifts, mtc
-from m2s2hil.analysis.rgb import RgbBaseline, band_colours, render_rgb, wavelength_to_rgb
+from m2s2hil.analysis.rgb import (
+    RgbBaseline,
+    band_colours,
+    camera_rgb,
+    camera_weights,
+    render_rgb,
+    wavelength_to_rgb,
+)
 from m2s2hil.analysis.segment import (
     Segmenter,
     create_segmenter,
@@ -60,6 +67,8 @@ __all__ = [
     "band_colours",
     "band_fused_predictor",
     "binary_fusion",
+    "camera_rgb",
+    "camera_weights",
     "composite_masks",
     "create_segmenter",
     "deduplicate_masks",

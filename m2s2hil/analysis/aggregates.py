@@ -32,7 +32,9 @@ def per_image_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
         if not r.get("results"):
             rows.append({**keys, "segmenter": ""})
         for name, res in r.get("results", {}).items():
-            rows.append({**keys, "segmenter": name, **res})
+            values = {k: v for k, v in res.items() if k != "errors"}
+            failed = "; ".join(f"{step}: {err}" for step, err in res.get("errors", {}).items())
+            rows.append({**keys, "segmenter": name, **values, "failed": failed})
     return rows
 
 
@@ -42,6 +44,8 @@ def speed_accuracy(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
     for r in records:
         for name, res in r.get("results", {}).items():
             d = by.setdefault(name, {"time": [], "dice": [], "mtc": []})
+            if "time_s" not in res:  # the segmenter failed on this image (res["errors"])
+                continue
             d["time"].append(float(res["time_s"]))
             if "dice" in res and res["dice"] is not None and math.isfinite(res["dice"]):
                 d["dice"].append(float(res["dice"]))
@@ -49,6 +53,8 @@ def speed_accuracy(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
                 d["mtc"].append(float(res["mtc"]))
     out = []
     for name, d in by.items():
+        if not d["time"]:
+            continue
         t, dice, m = np.array(d["time"]), np.array(d["dice"]), np.array(d["mtc"])
         out.append(
             {

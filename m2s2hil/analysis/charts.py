@@ -43,8 +43,13 @@ def row_label(r: Table2Row) -> str:
     return f"{r.satellite_name} {r.build} ({r.classes}) {r.elevation}"
 
 
-def table2_chart(rows: Sequence[Table2Row], path: str | Path) -> Path:
-    """Macro precision, recall and Dice per row, RGB vs Multi, significance stars on the better bar."""
+def table2_chart(rows: Sequence[Table2Row], path: str | Path, *, rho: float = 0.9) -> Path:
+    """Macro precision, recall and Dice per row, RGB vs Multi, significance stars on the better bar
+    (paired t-test at the assumed within-image correlation ``rho``, named in the title)."""
+    return _save(table2_figure(rows, rho=rho), path)
+
+
+def table2_figure(rows: Sequence[Table2Row], *, rho: float = 0.9) -> Figure:
     rows = [r for r in rows if r.cells]
     fig = Figure(figsize=(max(6.0, 0.9 * len(rows) + 2), 8.5))
     x = np.arange(len(rows))
@@ -71,39 +76,54 @@ def table2_chart(rows: Sequence[Table2Row], path: str | Path) -> Path:
         ax.grid(axis="y", alpha=0.3)
         if i == 0:
             ax.legend(loc="lower right", fontsize=8)
-            ax.set_title("RGB vs multispectral (* p < 0.05, ** p < 0.01, paired, ρ = 0.9)")
-    return _save(fig, path)
+            ax.set_title(
+                f"RGB vs multispectral (* p < 0.05, ** p < 0.01, paired t-test, assumed ρ = {rho:g})"
+            )
+    return fig
 
 
-def mtc_chart(rows: Sequence[Table2Row], path: str | Path) -> Path:
-    """mTC per row and lighting condition."""
+MTC_MODE_TITLES = {
+    "labels": "label mode: full label map, aligned",
+    "binary": "binary mode: foreground vs background (the paper's HIL setting)",
+}
+
+
+def mtc_chart(rows: Sequence[Table2Row], path: str | Path, *, mode: str | None = None,
+              segmenter: str | None = None) -> Path:
+    """mTC per row and lighting condition on the full 0–1 axis, n (images) on every bar, the mode
+    (labels or binary) and the segmenter in the title: the two modes measure different things."""
+    return _save(mtc_figure(rows, mode=mode, segmenter=segmenter), path)
+
+
+def mtc_figure(rows: Sequence[Table2Row], *, mode: str | None = None, segmenter: str | None = None) -> Figure:
     rows = [r for r in rows if r.mtc]
     lights = [lt for lt in LIGHTINGS if any(lt in r.mtc for r in rows)]
-    fig = Figure(figsize=(max(6.0, 0.9 * len(rows) + 2), 4.0))
+    fig = Figure(figsize=(max(6.0, 0.9 * len(rows) + 2), 4.4))
     ax = fig.add_subplot(1, 1, 1)
     x = np.arange(len(rows))
     w = 0.8 / max(1, len(lights))
-    lo = 1.0
+    total = 0
     for i, lt in enumerate(lights):
         vals = [r.mtc[lt][0] if lt in r.mtc else np.nan for r in rows]
-        finite = [v for v in vals if math.isfinite(v)]
-        lo = min([lo, *finite])
-        ax.bar(
-            x + (i - (len(lights) - 1) / 2) * w,
-            vals,
-            w,
-            label=LIGHTING_TITLES.get(lt, lt),
-            color=LIGHT_COLOURS.get(lt),
-        )
-    ax.set_ylim(max(0.0, lo - 0.05), 1.0 + 0.005)
+        ns = [r.mtc[lt][1] if lt in r.mtc else 0 for r in rows]
+        total += sum(ns)
+        xs = x + (i - (len(lights) - 1) / 2) * w
+        ax.bar(xs, vals, w, label=LIGHTING_TITLES.get(lt, lt), color=LIGHT_COLOURS.get(lt))
+        for xx, v, n in zip(xs, vals, ns, strict=True):
+            if n and math.isfinite(v):
+                ax.text(xx, min(v, 1.0) + 0.01, f"{v:.3f}\nn={n}", ha="center", va="bottom", fontsize=6)
+    ax.set_ylim(0.0, 1.15)
+    ax.set_yticks(np.linspace(0.0, 1.0, 6))
     ax.set_xticks(x)
     ax.set_xticklabels([row_label(r) for r in rows], rotation=30, ha="right")
-    ax.set_ylabel("mTC")
-    ax.set_title("Prediction stability (mTC) per lighting condition")
+    ax.set_ylabel("mTC (mean over images)")
+    what = MTC_MODE_TITLES.get(mode or "", mode or "mode not given")
+    who = f"{segmenter}, " if segmenter else ""
+    ax.set_title(f"Prediction stability (mTC), {who}{what}; {total} images, K = 8 shifts", fontsize=9)
     ax.grid(axis="y", alpha=0.3)
     if lights:
-        ax.legend(fontsize=8)
-    return _save(fig, path)
+        ax.legend(fontsize=8, loc="lower right")
+    return fig
 
 
 def speed_accuracy_chart(
@@ -186,15 +206,22 @@ def qc_histogram_png(scores: Sequence[float], threshold: float) -> bytes:
 
 
 def write_evaluation_charts(
-    out: str | Path, rows: Sequence[Table2Row], speed: Sequence[Mapping[str, Any]], *, has_truth: bool
+    out: str | Path,
+    rows: Sequence[Table2Row],
+    speed: Sequence[Mapping[str, Any]],
+    *,
+    has_truth: bool,
+    rho: float = 0.9,
+    mtc_mode: str | None = None,
+    multi: str | None = None,
 ) -> dict[str, Path]:
     """The evaluation's charts into ``out``: table2.png, mtc.png, speed_accuracy.png."""
     out = Path(out)
     written: dict[str, Path] = {}
     if has_truth and any(r.cells for r in rows):
-        written["table2.png"] = table2_chart(rows, out / "table2.png")
+        written["table2.png"] = table2_chart(rows, out / "table2.png", rho=rho)
     if any(r.mtc for r in rows):
-        written["mtc.png"] = mtc_chart(rows, out / "mtc.png")
+        written["mtc.png"] = mtc_chart(rows, out / "mtc.png", mode=mtc_mode, segmenter=multi)
     if has_truth and any(math.isfinite(p.get("dice_mean", math.nan)) for p in speed):
         written["speed_accuracy.png"] = speed_accuracy_chart(speed, out / "speed_accuracy.png")
     return written

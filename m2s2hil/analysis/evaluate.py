@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -61,7 +62,7 @@ from m2s2hil.analysis.jobs import (
 )
 from m2s2hil.analysis.loading import labels_to_cube, load_cube, load_truth
 from m2s2hil.analysis.metrics import score_clusters
-from m2s2hil.analysis.mtc import mtc
+from m2s2hil.analysis.mtc import PAPER_BANDS, mtc
 from m2s2hil.analysis.options import (
     RGB_COUNTERPART,
     EvalOptions,
@@ -77,12 +78,72 @@ from m2s2hil.analysis.study import SCENARIOS, simulate_session, stability_markdo
 from m2s2hil.store.frame_files import decode_tiff
 
 log = logging.getLogger(__name__)
+PCA_SAMPLE_PIXELS = 200  # foreground spectra per image pooled for PCA band selection (8 kB per image)
 
 
 
 # ----------------------------------------------------------------------------- one image
+def _error(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _segmenter_result(
+    name: str, cube: np.ndarray, gt: np.ndarray | None, job: FrameJob, options: EvalOptions, bands_nm: Any
+) -> dict[str, Any]:
+    """One segmenter on one image. Each step (segmentation, scores, mTC) fails on its own: its error
+    is recorded under ``errors`` and the other steps' values are kept."""
+    res: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    try:
+        seg = cached_segmenter(name, options, bands_nm)
+        t1 = time.perf_counter()
+        pred = seg.segment(cube)
+        res["time_s"] = time.perf_counter() - t1
+        res["n_segments"] = len(np.unique(pred[pred > 0]))
+    except Exception as exc:  # reported per segmenter; the image's other segmenters still run
+        log.warning("%s on %s failed: %s", name, job.image_id, exc)
+        return {"errors": {"segment": _error(exc)}}
+    if gt is not None:
+        try:
+            s, _ = score_clusters(gt, pred)
+            res.update(precision=s.macro_precision, recall=s.macro_recall, dice=s.macro_dice,
+                       micro_iou=s.micro_iou)
+        except Exception as exc:
+            errors["scores"] = _error(exc)
+    if options.mtc_for == "all" or (options.mtc_for == "multi" and name == options.multi):
+        try:
+            predict, align = mtc_predictor(
+                seg, name, options.mtc_mode, cube.shape[0], n_classes=job.n_classes, bands=options.mtc_bands
+            )
+            t2 = time.perf_counter()
+            r = mtc(predict, cube, align=align)
+            res.update(mtc=r.score, mtc_time_s=time.perf_counter() - t2)
+        except Exception as exc:
+            log.warning("mTC of %s on %s failed: %s", name, job.image_id, exc)
+            errors["mtc"] = _error(exc)
+    if errors:
+        res["errors"] = errors
+    return res
+
+
+def pca_sample(cube: np.ndarray, n: int = PCA_SAMPLE_PIXELS, seed: int = 0) -> np.ndarray:
+    """Up to ``n`` foreground spectra ``(n, bands)`` float32 (Otsu foreground, seeded draw), pooled
+    over the evaluated images for PCA band selection."""
+    from m2s2hil.analysis.spectral import foreground_mask
+
+    fg, _ = foreground_mask(cube)
+    spectra = cube[:, fg].T
+    if spectra.shape[0] > n:
+        spectra = spectra[np.random.default_rng(seed).choice(spectra.shape[0], n, replace=False)]
+    return np.ascontiguousarray(spectra, dtype=np.float32)
+
+
 def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
-    """Scores of every segmenter on one image; errors are returned in the record, not raised."""
+    """Scores of every segmenter on one image; errors are returned in the record, not raised.
+
+    ``error`` is set only when the image itself cannot be read; a segmenter or metric that fails
+    records its error in ``results[name]["errors"]`` and keeps the other values.
+    """
     rec: dict[str, Any] = {
         "image_id": job.image_id,
         "source": job.source,
@@ -103,32 +164,17 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
         rec["load_s"] = time.perf_counter() - t0
         rec["has_truth"] = gt is not None
         rec["cube_shape"] = list(cube.shape)
-        bands_nm = job.camera.get("bands_nm") or ()
-        for name in options.segmenters:
-            seg = cached_segmenter(name, options, bands_nm)
-            t1 = time.perf_counter()
-            pred = seg.segment(cube)
-            res: dict[str, Any] = {
-                "time_s": time.perf_counter() - t1,
-                "n_segments": len(np.unique(pred[pred > 0])),
-            }
-            if gt is not None:
-                s, _ = score_clusters(gt, pred)
-                res.update(
-                    precision=s.macro_precision,
-                    recall=s.macro_recall,
-                    dice=s.macro_dice,
-                    micro_iou=s.micro_iou,
-                )
-            if options.mtc_for == "all" or (options.mtc_for == "multi" and name == options.multi):
-                predict, align = mtc_predictor(seg, name, options.mtc_mode, cube.shape[0])
-                t2 = time.perf_counter()
-                r = mtc(predict, cube, align=align)
-                res.update(mtc=r.score, mtc_time_s=time.perf_counter() - t2)
-            rec["results"][name] = res
     except Exception as exc:  # one bad image must not end a 16,000-image run; it is reported
         log.warning("evaluation of %s failed: %s", job.image_id, exc)
-        rec["error"] = f"{type(exc).__name__}: {exc}"
+        rec["error"] = _error(exc)
+        return rec
+    bands_nm = job.camera.get("bands_nm") or ()
+    for name in options.segmenters:
+        rec["results"][name] = _segmenter_result(name, cube, gt, job, options, bands_nm)
+    try:
+        rec["pca_sample"] = pca_sample(cube)
+    except Exception as exc:
+        rec["pca_error"] = _error(exc)
     return rec
 
 
@@ -140,6 +186,17 @@ class EvaluationResult:
     sources: list[str]
     elapsed_s: float
     compute: dict[str, Any]
+    bands: dict[str, Any] | None = None  # ``band_report``: PCA's bands beside the paper's and mTC's
+
+    @property
+    def metric_errors(self) -> list[dict[str, Any]]:
+        """Segmenter or metric failures on images that were otherwise evaluated."""
+        out = []
+        for r in self.records:
+            for name, res in r.get("results", {}).items():
+                for step, err in res.get("errors", {}).items():
+                    out.append({"image_id": r["image_id"], "segmenter": name, "step": step, "error": err})
+        return out
 
     @property
     def has_truth(self) -> bool:
@@ -148,6 +205,42 @@ class EvaluationResult:
     @property
     def errors(self) -> list[dict[str, Any]]:
         return [r for r in self.records if r.get("error")]
+
+
+def band_report(records: list[dict[str, Any]], options: EvalOptions, bands_nm: Sequence[float] = ()) -> dict:
+    """PCA band selection on the evaluated images (their pooled foreground spectra, taken out of the
+    records), beside the paper's bands 5, 9, 10 and the bands the binary mTC used."""
+    from m2s2hil.analysis.bands import select_bands_pca
+
+    samples = [r.pop("pca_sample") for r in records if r.get("pca_sample") is not None]
+    report: dict[str, Any] = {
+        "paper_bands": list(PAPER_BANDS),
+        "mtc_bands": list(options.mtc_bands),
+        "mtc_used": "paper" if tuple(options.mtc_bands) == PAPER_BANDS else "given",
+        "mtc_binary": options.mtc_mode == "binary" and options.mtc_for != "none",
+        "pca_bands": None,
+        "pca_images": len(samples),
+    }
+    samples = [s for s in samples if s.shape[0] > 0]
+    try:
+        pixels = np.concatenate(samples)[:, :, np.newaxis] if samples else None
+        if pixels is None:
+            raise ValueError("no foreground pixels in the evaluated images")
+        sel = select_bands_pca(np.moveaxis(pixels, 0, 1))  # (bands, n, 1): one "cube" of pooled pixels
+    except Exception as exc:  # reported, never fatal: PCA is a side result
+        report["pca_error"] = _error(exc)
+        return report
+    if tuple(options.mtc_bands) == sel.bands_1based:
+        report["mtc_used"] = "pca"
+    report.update(
+        pca_bands=sorted(sel.bands_1based),
+        pca_pick_order=list(sel.bands_1based),
+        pca_explained_variance=[float(v) for v in sel.explained_variance_ratio],
+        pca_pixels=sel.n_pixels,
+        pca_standardized=sel.standardize,
+        loadings_table=sel.loadings_table(list(bands_nm) if len(bands_nm) == sel.loadings.shape[1] else None),
+    )
+    return report
 
 
 def evaluate_jobs(
@@ -182,7 +275,25 @@ def evaluate_jobs(
             records = map_ordered(
                 evaluate_job, list(jobs), client=client, on_result=on_result, options=options
             )
-    return EvaluationResult(records, options, list(sources), time.perf_counter() - t0, compute)
+    bands_nm = next((j.camera.get("bands_nm") for j in jobs if j.camera.get("bands_nm")), ())
+    bands = band_report(records, options, bands_nm)
+    return EvaluationResult(records, options, list(sources), time.perf_counter() - t0, compute, bands)
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None, so ``json.dumps(allow_nan=False)``
+    writes valid JSON (``null``, never ``NaN``)."""
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    return value
 
 
 # ----------------------------------------------------------------------------- writing
@@ -208,17 +319,26 @@ def write_evaluation(result: EvaluationResult, out: str | Path) -> dict[str, Pat
     if result.has_truth:
         write_text_atomic(
             out / "significance.md",
-            table2.significance_markdown(result.records, rows, multi=opts.multi, rgb=opts.rgb_name),
+            table2.significance_markdown(
+                result.records, rows, multi=opts.multi, rgb=opts.rgb_name, rho=opts.rho
+            ),
         )
         written["significance.md"] = out / "significance.md"
     speed = speed_accuracy(result.records)
-    written.update(charts.write_evaluation_charts(out, rows, speed, has_truth=result.has_truth))
+    written.update(
+        charts.write_evaluation_charts(
+            out, rows, speed, has_truth=result.has_truth, rho=opts.rho,
+            mtc_mode=opts.mtc_mode if opts.mtc_for != "none" else None, multi=opts.multi,
+        )
+    )
     summary = {
         "written": datetime.now(UTC).isoformat(timespec="seconds"),
         "sources": result.sources,
         "images": len(result.records),
         "images_with_truth": sum(r["has_truth"] for r in result.records),
         "errors": [{"image_id": r["image_id"], "error": r["error"]} for r in result.errors],
+        "metric_errors": result.metric_errors,
+        "bands": result.bands,
         "options": {**asdict(opts), "segmenters": list(opts.segmenters), "rgb": opts.rgb_name},
         "elapsed_s": result.elapsed_s,
         "compute": result.compute,
@@ -226,7 +346,8 @@ def write_evaluation(result: EvaluationResult, out: str | Path) -> dict[str, Pat
         "speed_accuracy": speed,
         "notes": notes,
     }
-    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2, sort_keys=True, default=str) + "\n")
+    text = json.dumps(json_safe(summary), indent=2, sort_keys=True, default=str, allow_nan=False)
+    write_text_atomic(out / "summary.json", text + "\n")
     written["summary.json"] = out / "summary.json"
     return written
 
@@ -242,6 +363,7 @@ __all__ = [
     "FrameJob",
     "MtcFor",
     "MtcMode",
+    "band_report",
     "check_segmenters",
     "collect_jobs",
     "dataset_jobs",
@@ -249,6 +371,7 @@ __all__ = [
     "evaluate_job",
     "evaluate_jobs",
     "is_rgb",
+    "json_safe",
     "labels_to_cube",
     "load_cube",
     "load_truth",

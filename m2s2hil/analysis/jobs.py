@@ -144,11 +144,18 @@ def collect_jobs(target: str | Path, root: str | Path | None = None) -> tuple[li
     if (p / JOURNAL).is_file():
         with SessionStore.open_path(p) as store:
             return session_jobs(store), [f"session {store.session_id}"]
+    if (p / "zarr.json").is_file():  # a zarr export (m2s2hil.store.zarr_export)
+        from m2s2hil.store.zarr_export import zarr_frames
+
+        refs = ("raw", "dark", "labels")
+        jobs = [FrameJob(**{**f, **{k: FileRef(f[k]) if f[k] else None for k in refs}})
+                for f in zarr_frames(p)]
+        return jobs, [f"zarr export {p} ({len(jobs)} images)"]
     if p.is_dir() and ((p / "HIL").is_dir() or p.name == "HIL"):
         jobs = dataset_jobs(p)
         return jobs, [f"exported dataset {p} ({len(jobs)} images)"]
     if p.is_dir():
-        sessions = [s for s in list_sessions(p) if s.state != "corrupt"]
+        sessions = [s for s in list_sessions(p) if s.state not in ("corrupt", "damaged")]
         if sessions:
             jobs, desc = [], []
             for s in sorted(sessions, key=lambda s: s.session_id):

@@ -46,6 +46,10 @@ def labels_to_cube(labels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _read(ref: FileRef) -> bytes:
+    if "#zarr:" in ref.path:  # a frame of a zarr export (m2s2hil.store.zarr_export)
+        from m2s2hil.store.zarr_export import read_ref
+
+        return read_ref(ref.path)
     data = Path(ref.path).read_bytes()
     if ref.sha256 and hashlib.sha256(data).hexdigest() != ref.sha256:
         raise EvaluationError(f"{ref.path}: sha256 does not match the session journal")

@@ -63,7 +63,12 @@ def dask_client(
 
     The LocalCluster (and only it) is closed on exit; an existing cluster is left running.
     """
-    from distributed import Client, LocalCluster
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # a capture-only install
+        raise SchedulerUnavailable(
+            "evaluation runs on Dask, which is not installed: pip install 'm2s2hil[analysis]'"
+        ) from None
 
     if scheduler:
         addr = check_scheduler_address(scheduler)

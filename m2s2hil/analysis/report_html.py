@@ -59,13 +59,15 @@ class FrameView:
     thumbnail: bytes | None = field(default=None, repr=False)  # JPEG
 
 
-def preview_rgb(cube: np.ndarray, bands_nm: Sequence[float]) -> np.ndarray:
-    """8-bit RGB from the bands nearest 650/550/470 nm, stretched to the 99.5th percentile."""
-    nm = np.asarray(bands_nm, dtype=float)
-    idx = [int(np.argmin(np.abs(nm - t))) for t in (650.0, 550.0, 470.0)]
-    rgb = np.stack([cube[i] for i in idx], axis=-1).astype(np.float32)
-    hi = float(np.percentile(rgb, 99.5)) or 1.0
-    return np.clip(rgb * (255.0 / hi), 0, 255).astype(np.uint8)
+def preview_rgb(
+    cube: np.ndarray, bands_nm: Sequence[float], white: Sequence[float] | None = None
+) -> np.ndarray:
+    """8-bit sRGB preview of a cube (``processing.display.false_colour``): the bands nearest 640/550/470
+    nm, white-balanced by grey world (or by ``white``, a white reference's signal per band), scaled to
+    the 99.5th percentile, sRGB transfer curve — the same rendering as the engine's stored previews."""
+    from m2s2hil.processing.display import false_colour
+
+    return false_colour(np.asarray(cube), bands_nm, white=white)
 
 
 def thumbnail_jpeg(rgb: np.ndarray, width: int) -> bytes:

@@ -26,6 +26,7 @@ three channels scaled by the same percentiles, keeping colour ratios): the RGB b
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -120,6 +121,23 @@ class SamSegmenter:
                 raise SegmenterUnavailableError("sam", f"checkpoint {self.checkpoint} does not exist")
             if importlib.util.find_spec("segment_anything") is None:
                 raise SegmenterUnavailableError("sam", f"package segment_anything not found; {INSTALL_HINT}")
+
+    def paper_mtc(self, *, top_k: int | None, bands: Sequence[int] | None = None) -> SamSegmenter:
+        """A copy in the paper's mTC setting: binary fusion, top-k = ``top_k`` masks per band
+        (the number of classes) after de-duplication, over ``bands`` (1-based; default: this one's).
+        The copy shares the loaded model."""
+        if top_k is not None and top_k < 1:
+            raise AnalysisInputError("top_k", f"must be ≥ 1 or None, got {top_k}")
+        twin = copy.copy(self)
+        twin.binary = True
+        twin.top_k = top_k
+        if bands is not None:
+            chosen = tuple(int(b) for b in bands)
+            if not chosen or min(chosen) < 1:
+                raise AnalysisInputError("bands", f"expected 1-based band numbers, got {bands!r}")
+            twin.bands = chosen
+        twin._generator = self._load()  # one model in memory, not two
+        return twin
 
     def _load(self) -> MaskGenerator:
         if self._generator is None:

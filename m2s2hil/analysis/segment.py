@@ -11,13 +11,17 @@ Built-in names (``create_segmenter(name, **options)``):
 
 ========== ===============================================================
 spectral   ``SpectralSegmenter`` (default): Otsu foreground + GMM on unit spectra
-rgb        ``RgbBaseline(SpectralSegmenter)``: the same on the wavelength→RGB render
+rgb        ``RgbBaseline(SpectralSegmenter)``: the same on what an IR-cut RGB camera sees
+           (CIE 1931 → linear sRGB, ``rgb.camera_rgb``)
+rgb-nir    the same on the paper's wavelength→RGB map with the near-infrared bands
+           clamped into red (``rgb.render_rgb``): not what a camera sees
 sam        ``SamSegmenter``: SAM per selected band, majority-vote fusion (optional extra)
-sam-rgb    ``RgbBaseline(SamSegmenter(mode="image"))``: SAM on the RGB render
+sam-rgb    ``RgbBaseline(SamSegmenter(mode="image"))``: SAM on the camera RGB image
 ========== ===============================================================
 
-Options ``bands_nm``, ``gamma`` and ``nir`` go to the RGB rendering of the ``rgb*``
-segmenters; every other option goes to the inner segmenter's constructor.
+Options ``bands_nm`` and ``ir_cut_nm`` (camera) or ``gamma`` and ``nir`` (``rgb-nir``) go to
+the RGB rendering of the ``rgb*`` segmenters; every other option goes to the inner
+segmenter's constructor.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ class Segmenter(Protocol):
 Factory = Callable[..., Segmenter]
 _REGISTRY: dict[str, Factory] = {}
 
-_RGB_OPTIONS = ("bands_nm", "gamma", "nir")
+_RGB_OPTIONS = ("bands_nm", "gamma", "nir", "ir_cut_nm")
 
 
 def register_segmenter(name: str, factory: Factory, *, replace: bool = False) -> None:
@@ -105,6 +109,14 @@ def _rgb_spectral(**options: Any) -> Segmenter:
     return RgbBaseline(SpectralSegmenter(**rest), **rgb)
 
 
+def _rgb_nir_spectral(**options: Any) -> Segmenter:
+    from m2s2hil.analysis.rgb import RgbBaseline
+    from m2s2hil.analysis.spectral import SpectralSegmenter
+
+    rgb, rest = _split_rgb(dict(options))
+    return RgbBaseline(SpectralSegmenter(**rest), rendering="bruton", **rgb)
+
+
 def _sam(**options: Any) -> Segmenter:
     from m2s2hil.analysis.sam import SamSegmenter
 
@@ -122,5 +134,6 @@ def _sam_rgb(**options: Any) -> Segmenter:
 
 register_segmenter("spectral", _spectral)
 register_segmenter("rgb", _rgb_spectral)
+register_segmenter("rgb-nir", _rgb_nir_spectral)
 register_segmenter("sam", _sam)
 register_segmenter("sam-rgb", _sam_rgb)

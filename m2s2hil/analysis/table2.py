@@ -281,7 +281,7 @@ def by_lighting(records: Sequence[Mapping[str, Any]], *, segmenters: Sequence[st
 
 
 def significance_markdown(
-    records: Sequence[Mapping[str, Any]], rows: Sequence[Table2Row], *, multi: str, rgb: str
+    records: Sequence[Mapping[str, Any]], rows: Sequence[Table2Row], *, multi: str, rgb: str, rho: float = 0.9
 ) -> str:
     """ρ sensitivity of every row's tests: p at each assumed ρ and at the observed correlation."""
     head = ["Satellite", "Build", "Elevation", "Metric", "n", "mean(multi − rgb)"]
@@ -290,7 +290,8 @@ def significance_markdown(
         f"# Significance: {multi} (multi) vs {rgb} (RGB), paired over images",
         "",
         "SD_diff = sqrt(s_a² + s_b² − 2ρ·s_a·s_b), t = mean(a − b)/(SD_diff/√n), df = n − 1, two-sided "
-        "(Cochrane Handbook 16.4.6; `analysis.significance`). Table 2 uses ρ = 0.9.",
+        "(Cochrane Handbook 16.4.6; `analysis.significance`). "
+        f"Table 2 uses ρ = {rho:g}.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -339,8 +340,12 @@ def notes(result: Any, rows: Sequence[Table2Row]) -> list[str]:
     out = [
         f"{n} images from {', '.join(result.sources) or 'the given jobs'}; {n_truth} with ground truth "
         "(the simulator's label maps stored with the frames).",
-        f"Multi = `{o.multi}` on the 10-band cube; RGB = `{o.rgb_name}` (the same segmenter on the "
-        "wavelength→RGB rendering, Bruton γ = 0.8, NIR clamped to 780 nm).",
+        f"Multi = `{o.multi}` on the 10-band cube; RGB = `{o.rgb_name}` (the same segmenter on "
+        + ("the wavelength→RGB rendering with the near-infrared bands clamped into red (Bruton, γ = 0.8): "
+           "NOT what an RGB camera sees)." if "nir" in o.rgb_name else
+           "the image an RGB camera would see: band responses through the CIE 1931 colour-matching "
+           "functions to linear sRGB, behind an IR-cut filter at 700 nm; `analysis.rgb`).")
+        + "",
         "Macro scores average the ground-truth classes of each image (background included, 0/0 = 0) after "
         "oracle Hungarian matching of clusters to classes: an upper bound for a segmenter whose cluster "
         "ids carry no material names.",
@@ -358,11 +363,30 @@ def notes(result: Any, rows: Sequence[Table2Row]) -> list[str]:
             "mean over the row's images per lighting condition."
         )
     else:
+        bands = ", ".join(str(b) for b in o.mtc_bands)
         out.append(
-            "mTC: the paper's binary setting (bands 5, 9, 10 segmented separately, fused "
-            "foreground/background, K = 8 shifts, seed 42). A pixel-wise segmenter scores exactly 1.0 "
-            "here."
+            f"mTC: the paper's binary setting (bands {bands} segmented separately, fused "
+            "foreground/background, K = 8 shifts, seed 42; SAM keeps the top k = number of classes masks "
+            "per band after de-duplication at IoU 0.9). A pixel-wise segmenter scores exactly 1.0 here."
         )
+    b = getattr(result, "bands", None)
+    if b:
+        used = {"paper": "the paper's", "pca": "PCA's", "given": "the given"}.get(b.get("mtc_used"), "")
+        mtc_b = ", ".join(str(x) for x in b.get("mtc_bands", ()))
+        if b.get("pca_bands"):
+            pca = ", ".join(str(x) for x in b["pca_bands"])
+            out.append(
+                f"Band selection: PCA on these images ({b.get('pca_images')} images' foreground spectra, "
+                f"standardised) picks bands {pca}; the paper's PCA picked 5, 9, 10. The binary mTC "
+                f"{'used' if b.get('mtc_binary') else 'would use'} bands {mtc_b} ({used} bands)."
+            )
+        else:
+            out.append(f"Band selection: PCA could not run ({b.get('pca_error', 'no pixels')}); "
+                       f"mTC bands {mtc_b} ({used} bands).")
+    metric_errors = getattr(result, "metric_errors", [])
+    if metric_errors:
+        out.append(f"{len(metric_errors)} segmenter or metric failures on otherwise evaluated images "
+                   "(their other metrics are kept; see summary.json, metric_errors).")
     if n_truth == 0:
         out.append(
             "No ground truth in these images (e.g. an exported or real dataset): only the "

@@ -47,6 +47,7 @@ from . import (
     routes_console,
     routes_daemon,
     routes_frames,
+    routes_lens,
     routes_live,
     routes_manual,
     routes_queue,
@@ -63,7 +64,7 @@ from .security import BodyLimit
 API_TITLE = "m2s2hil capture daemon"
 
 GUARDED_ROUTERS: list[APIRouter] = [routes_sessions.router, routes_frames.router, routes_queue.router,
-                                    routes_rig.router, routes_daemon.router,
+                                    routes_rig.router, routes_daemon.router, routes_lens.router,
                                     # the operator console's (docs/console.md)
                                     routes_manual.router, routes_live.router, routes_snapshots.router,
                                     routes_calibration.router, routes_browser.router, routes_console.router]

@@ -411,6 +411,17 @@ class SessionManager:
         raise Conflict(f"session {session_id} is {state} and not running in this daemon: it cannot be "
                        f"{action}d" + ("; resume queues it again" if state in RESUMABLE_BY_HAND else ""))
 
+    def confirm_lens(self, session_id: str, capped: bool) -> dict:
+        """The operator's lens cap on (``capped``) or off, for a running session parked for it
+        (a real rig's darks, :mod:`m2s2hil.engine.darks`); Conflict / IllegalTransition (409)
+        when it does not wait for exactly that."""
+        job = self._queue.get(session_id)
+        if job is None or job.engine is None or job.finished.is_set():
+            state = self.status(session_id)["state"]  # UnknownSession (404) when there is none
+            raise Conflict(f"session {session_id} is {state}, not running here: it waits for no lens cap")
+        job.engine.confirm_lens(capped)
+        return self.status(session_id)
+
     def _cancel(self, job: Job) -> None:
         """Caller holds the lock."""
         self._queue.remove(job)

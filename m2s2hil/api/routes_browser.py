@@ -28,7 +28,7 @@ REPORT_HEADERS = {
 
 class ExportIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    layout: Literal["m2s2", "hf"] = "m2s2"
+    layout: Literal["m2s2", "hf", "zarr"] = "m2s2"
     overwrite: bool = False
 
 
@@ -57,8 +57,9 @@ def verify_session(mg: Manager, session_id: SessionId) -> dict[str, Any]:
 @router.post("/sessions/{session_id}/export", status_code=201,
              responses={**NOT_FOUND, **CONFLICT, **CROSS_SITE})
 def export(mg: Manager, session_id: SessionId, body: ExportIn) -> dict[str, Any]:
-    """Export the session's frames (``m2s2``: the published layout; ``hf``: a Hugging Face image
-    folder) under ``<data root>/exports/<session>/<layout>/``."""
+    """Export the session's frames (``m2s2``: the published layout; ``hf``: a Hugging Face dataset
+    with the exact raw values; ``zarr``: a chunked store xarray opens lazily) under
+    ``<data root>/exports/<session>/<layout>/``."""
     from m2s2hil.store.export import export_session
 
     out = mg.root / "exports" / session_id / body.layout

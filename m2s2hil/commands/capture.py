@@ -4,14 +4,30 @@
     capture --sat voyager --build B3 --light all --tilt E1 --dry-run
     capture --resume 20261124T213811-hubble-B2-weak-aed7
 
-Exit codes: 0 completed; 1 failed; 2 bad input; 3 paused by the engine (e.g. disk
-full) and resumable; 4 aborted; 130 interrupted with Ctrl-C (paused and resumable).
+Exit codes: 0 completed; 1 failed (also: the rig could not be opened, one line naming the
+device; or not one frame could be stored); 2 bad input (also: an output folder that cannot
+be written, one line naming it); 3 paused by the engine (e.g. disk full, also at the start)
+and resumable; 4 aborted; 5 completed with gaps (planned frames skipped, each recorded;
+``--resume`` retries them); 130 interrupted with Ctrl-C (paused and resumable).
+
+Dark frames on a real rig (a camera that is not ``sim://``): before the darks the run stops
+at a safe boundary (lamps off, motion stopped) and asks "Put the lens cap on, then press
+Enter", and before the first lit frame "Take the lens cap off, then press Enter"; nothing
+checks the cap (:mod:`m2s2hil.engine.darks`). Without a terminal (stdin not a tty) a session
+with darks still to take is refused (exit 2, one line); a dark needed later (auto exposure,
+a temperature retake) with no one to answer leaves the session paused (exit 3).
+
+The run is put together by :func:`m2s2hil.engine.build.build_run` (the daemon's too); this
+module only translates the options and renders progress.
 """
 
 from __future__ import annotations
 
 import contextlib
+import shlex
+import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
@@ -22,7 +38,13 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.config import RigConfig, load_rig
 from m2s2hil.errors import UsageError
 
+if TYPE_CHECKING:
+    from m2s2hil.engine.runner import Engine
+    from m2s2hil.engine.state import EngineStatus
+    from m2s2hil.plan import Sweep
+
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PAUSED, EXIT_ABORTED, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
+EXIT_GAPS = 5  # completed_with_gaps: the run ended, some planned frames were skipped
 
 app = typer.Typer(help="Capture a session on the rig.", add_completion=False)
 console = Console(stderr=True)
@@ -47,7 +69,7 @@ def parse_lights(values: list[str]) -> list[str]:
 def build_sweep(
     *, sat: str, build: str, lights: list[str], tilts: list[str] | None, mode: str, method: str | None,
     exposure: str | None, azimuth_step: float, frames_per_pose: int, config: RigConfig,
-):
+) -> Sweep:
     from m2s2hil.plan import parse_sweep
 
     cat = load_catalog()
@@ -73,7 +95,7 @@ def build_sweep(
     return parse_sweep(data, "command line")
 
 
-def _print_plan(sweep, config: RigConfig) -> None:
+def _print_plan(sweep: Sweep, config: RigConfig) -> None:
     events = sweep.expand(config)
     est = sweep.estimate(config)
     frames = sum(1 for e in events if e.kind == "frame")
@@ -101,7 +123,36 @@ def _print_plan(sweep, config: RigConfig) -> None:
         typer.echo(f"  ... {len(events) - 5} more")
 
 
-def _run_engine(engine, *, virtual: bool) -> int:
+def _stdin_is_terminal() -> bool:
+    """Someone can answer a prompt (tests replace this)."""
+    return sys.stdin.isatty()
+
+
+def _check_operator(config: RigConfig, sweep: Sweep, stored: set[str]) -> None:
+    """Refuse a session that needs the lens cap put on by hand when no one can be asked."""
+    if config.camera.port.startswith("sim://") or _stdin_is_terminal():
+        return  # a simulated camera caps its own lens; a terminal gets the prompt
+    pending = [e for e in sweep.expand(config) if e.kind == "dark" and e.event_id not in stored]
+    if pending:
+        raise UsageError(f"darks need an operator: {len(pending)} dark(s) to take on a real camera "
+                         "need the lens cap put on by hand, and stdin is not a terminal; run capture "
+                         "from a terminal, or use the daemon (POST /sessions/{id}/lens)")
+
+
+def _ask_lens(capped: bool) -> bool | None:
+    """Prompt the operator; True once they pressed Enter, False with no one to answer (end of
+    input), None on Ctrl-C."""
+    what = "Put the lens cap on" if capped else "Take the lens cap off"
+    try:
+        console.input(f"[bold yellow]{what}, then press Enter[/] ")
+    except EOFError:
+        return False
+    except KeyboardInterrupt:
+        return None
+    return True
+
+
+def _run_engine(engine: Engine, *, virtual: bool) -> int:
     from m2s2hil.engine.state import Progress as ProgressEvent
     from m2s2hil.engine.state import RunState
 
@@ -128,6 +179,17 @@ def _run_engine(engine, *, virtual: bool) -> int:
                         where = f"{s.lighting or '-'} {s.elevation or '-'} az {s.azimuth_deg:6.1f}°"
                     eta = "?" if s.eta_s is None else f"{s.eta_s:.0f} s" + (" (simulated)" if virtual else "")
                     bar.update(task, completed=s.done + s.skipped, description=where, eta=eta)
+                lens = engine.lens_wait  # parked for the operator's lens cap (a real rig's darks)
+                if lens is not None:
+                    bar.stop()
+                    answer = _ask_lens(lens)
+                    bar.start()
+                    if answer is None:
+                        interrupts += 1
+                    if not answer:
+                        break  # paused and resumable; the resumed run asks again
+                    engine.confirm_lens(lens)
+                    continue
                 # Paused (by Ctrl-C or by the engine itself, e.g. a full disk): the session is
                 # saved and resumable, so the command ends rather than waiting for a resume.
                 if s.state is RunState.PAUSED or not thread.is_alive():
@@ -145,7 +207,9 @@ def _run_engine(engine, *, virtual: bool) -> int:
                         engine.abort()
         listener.close()
     final = engine.status()
-    sid = engine.session_id
+    sid = f"{engine.session_id} --out {shlex.quote(str(engine.store.path.parent))}"  # the resume command
+    if engine.rig.config.source_path is not None:
+        sid += f" --rig {shlex.quote(str(engine.rig.config.source_path))}"
     if final.state is RunState.PAUSED:
         if interrupts:
             console.print(f"paused and saved; resume with: capture --resume {sid}")
@@ -157,22 +221,29 @@ def _run_engine(engine, *, virtual: bool) -> int:
     _summary(final, engine)
     if final.state is RunState.COMPLETED:
         return EXIT_OK
+    if final.state is RunState.COMPLETED_WITH_GAPS:
+        console.print(f"completed with gaps: {final.skipped} planned event(s) skipped (reasons in the "
+                      f"journal); retry them with: capture --resume {sid}")
+        return EXIT_GAPS
     if final.state is RunState.ABORTED:
         return EXIT_ABORTED
     return EXIT_FAILED
 
 
-def _summary(s, engine) -> None:
+def _summary(s: EngineStatus, engine: Engine) -> None:
     t = Table(title=f"session {s.session_id}: {s.state.value}")
     t.add_column("item")
     t.add_column("value", justify="right")
     t.add_row("events stored", f"{s.done} / {s.total}")
     t.add_row("skipped (recorded with reasons)", str(s.skipped))
-    t.add_row("faults", str(len(s.faults)))
+    t.add_row("faults", str(s.fault_count))
     t.add_row("duration (engine clock)", f"{s.elapsed_s:.1f} s")
     if s.efficiency is not None:
         t.add_row("efficiency vs lower bound", f"{s.efficiency:.3f}")
     t.add_row("folder", str(engine.store.path))
+    safe = getattr(engine, "rig_safe", None)  # the rig's outcome, apart from the data's
+    if safe is not None:
+        t.add_row("rig at the end", "safe (lamps off, motion stopped)" if safe else "NOT SAFE: check it")
     if s.error:
         t.add_row("error", s.error)
     Console().print(t)
@@ -196,6 +267,8 @@ def capture(
     azimuth_step: float = typer.Option(10.0, "--azimuth-step", help="degrees between azimuths"),
     frames_per_pose: int = typer.Option(1, "--frames-per-pose", min=1),
     realtime: bool = typer.Option(False, "--realtime", help="simulated rig in real time, not virtual"),
+    allow_rig_change: bool = typer.Option(
+        False, "--allow-rig-change", help="with --resume: continue although the rig file changed"),
 ) -> None:
     """Capture one satellite build under the chosen lighting conditions."""
     from m2s2hil.store.session import default_data_root
@@ -222,22 +295,30 @@ def capture(
     elif dry_run or sat or build or light:
         raise UsageError("--resume takes the plan from the session: drop --sat/--build/--light/--dry-run")
 
-    from m2s2hil.engine.runner import Engine
-    from m2s2hil.rig.factory import open_rig
-    from m2s2hil.store.session import SessionStore
+    from m2s2hil.engine.build import build_run, open_capture_rig
 
-    opened = open_rig(config, realtime=realtime)
+    if resume is not None:  # a missing or damaged session is refused before any device moves
+        from m2s2hil.store.session import SessionStore
+
+        stored = SessionStore.open(root, resume)
+        try:
+            sweep, done = stored.sweep, stored.completed_event_ids()
+        finally:
+            stored.close()
+        _check_operator(config, sweep, done)
+    else:
+        _check_operator(config, sweep, set())
+    opened = open_capture_rig(config, realtime=realtime, source=str(rig) if rig is not None else None)
     try:
         if resume is not None:
-            engine = Engine.resume_session(opened, root, resume, qc=_qc_hook())
+            engine = build_run(opened, root, resume=resume, allow_rig_change=allow_rig_change)
             n_done = len(engine.store.completed_event_ids())
             console.print(f"resuming {resume}: {n_done} events already stored")
         else:
-            store = SessionStore.create(root, sweep, config, clock=opened.clock)
-            engine = Engine(opened, store, sweep, qc=_qc_hook())
-            console.print(f"session {store.session_id} in {store.path}")
-        opened.mount(engine.sweep.satellite, engine.sweep.build)
-        code = _run_engine(engine, virtual=opened.clock.__class__.__name__ == "VirtualClock")
+            engine = build_run(opened, root, sweep=sweep)
+            console.print(f"session {engine.session_id} in {engine.store.path}")
+        code = _run_engine(engine, virtual=opened.simulated and not realtime)  # open_rig's clock rule
+        engine.store.close()  # ended or parked: the session's owner lock goes with the command
     finally:
         opened.safe()
         opened.close()
@@ -249,12 +330,3 @@ def _check_method(name: str) -> None:
 
     if name not in METHODS:
         raise UsageError(f"unknown processing method {name!r}; known: {', '.join(METHODS)}")
-
-
-def _qc_hook():
-    try:
-        from m2s2hil.analysis.qc import capture_qc_hook
-    except ImportError:
-        return None
-    return capture_qc_hook()
-

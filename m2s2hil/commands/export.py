@@ -1,4 +1,6 @@
-"""``m2s2hil export SESSION --layout m2s2|hf --out DIR [--root DATA_ROOT]``.
+"""``m2s2hil export SESSION --layout m2s2|hf|zarr --out DIR [--root DATA_ROOT]``.
+
+Exporting only reads the session (opened read-only; nothing is recorded in it).
 
 Register with ``app.add_typer(export.app, name="export")`` (the command is the group's
 callback, so no sub-command name is needed) or ``app.command("export")(export.export_cmd)``.
@@ -15,7 +17,7 @@ from m2s2hil.store.export import LAYOUTS, export_session
 from m2s2hil.store.session import JOURNAL, SessionStore, default_data_root
 
 app = typer.Typer(
-    help="Export a session as the published M2S2 layout or a Hugging Face image folder.",
+    help="Export a session as the published M2S2 layout, a Hugging Face dataset or a Zarr store.",
     # The command is the group callback: let its options follow the SESSION argument.
     context_settings={"allow_interspersed_args": True},
 )

@@ -22,10 +22,12 @@ app = typer.Typer(
 
 @app.callback(invoke_without_command=True)
 def import_cmd(
-    path: Path = typer.Argument(..., help="folder holding HIL/<Satellite>/b<N>/e<N>/<light>_<k>.png"),
+    path: Path = typer.Argument(..., help="folder holding HIL/<Satellite>/b<N>/e<N>/<light>_<k>.png "
+                                          "(and HIL16/, metadata/ when exported by m2s2hil: lossless)"),
     layout: str = typer.Option("m2s2", "--layout", help="input layout (m2s2)"),
     root: Path | None = typer.Option(None, "--root", help="data root (default: $M2S2HIL_DATA or ./sessions)"),
-    step: float = typer.Option(10.0, "--azimuth-step", help="degrees between consecutive indices k"),
+    step: float = typer.Option(10.0, "--azimuth-step",
+                               help="degrees between consecutive indices k (when no exported metadata says)"),
 ) -> None:
     """Import PATH: one session per satellite build."""
     stores = import_dataset(path, root or default_data_root(), layout, azimuth_step_deg=step)

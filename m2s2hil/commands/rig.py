@@ -24,4 +24,6 @@ def check(rig: Path | None = typer.Argument(None, help="rig TOML file (default: 
         t.add_row(name, dev.protocol, dev.port, str(dev.baudrate))
     t.add_row("camera", "u3v", cfg.camera.port, "-")
     Console().print(t)
+    for name, faults in cfg.simulation.faults.items():  # said aloud: a fault file on a real bench surprises
+        typer.echo(f"injected faults on {name}: {', '.join(f.kind for f in faults)}")
     typer.echo(f"ok: {rig or 'built-in simulated rig'} (sha256 {cfg.digest[:12]})")

@@ -24,13 +24,8 @@ from types import FrameType
 import typer
 
 from m2s2hil.api.settings import TOKEN_ENV, ServeSettings, load_serve_settings
-from m2s2hil.errors import M2S2Error
 
 log = logging.getLogger("m2s2hil.serve")
-
-
-class RigUnavailable(M2S2Error):
-    """The rig's devices could not be opened (exit code 1)."""
 
 
 def serve(
@@ -47,6 +42,8 @@ def serve(
                                          help="simulated rig on a real clock (default) or a virtual one"),
     cors_origin: list[str] | None = typer.Option(
         None, "--cors-origin", help="allow this origin (repeatable); CORS is off otherwise"),
+    allowed_host: list[str] | None = typer.Option(
+        None, "--allowed-host", help="a Host name clients use besides 127.0.0.1/localhost (repeatable)"),
     queue_limit: int | None = typer.Option(None, "--queue-limit", help="sessions that may wait (default 16)"),
     log_level: str | None = typer.Option(None, "--log-level", help="debug, info, warning, error"),
     access_log: bool = typer.Option(False, "--access-log", help="log every request"),
@@ -54,7 +51,8 @@ def serve(
     """Run the capture daemon: REST API, session queue, live events."""
     settings = load_serve_settings(
         config, host=host, port=port, rig=rig, data_root=data_root, resume_interrupted=resume,
-        realtime=realtime, cors_origins=cors_origin or None, queue_limit=queue_limit, log_level=log_level,
+        realtime=realtime, cors_origins=cors_origin or None, allowed_hosts=allowed_host or None,
+        queue_limit=queue_limit, log_level=log_level,
     )
     run_daemon(settings, access_log=access_log)
 
@@ -66,7 +64,7 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     from m2s2hil.api.manager import SessionManager, lock_data_root
     from m2s2hil.api.security import check_listen
     from m2s2hil.config import load_rig
-    from m2s2hil.rig.factory import open_rig
+    from m2s2hil.engine.build import open_capture_rig
 
     level = settings.log_level.upper()
     logging.basicConfig(level=level, stream=sys.stderr,
@@ -76,13 +74,9 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     cfg = load_rig(settings.rig)
     root_lock = lock_data_root(settings.data_root)  # a second daemon on this root stops here
     log.info("opening rig %r (%s)", cfg.rig.name, settings.rig or "built-in simulated rig")
-    try:
-        rig = open_rig(cfg, realtime=settings.realtime, seed=settings.seed)
-    except M2S2Error:
-        raise
-    except Exception as exc:  # a device that is missing or does not answer: say which, no traceback
-        raise RigUnavailable(f"cannot open the rig ({settings.rig or 'built-in simulated rig'}): "
-                             f"{type(exc).__name__}: {exc}") from exc
+    # A device that is missing or does not answer: RigUnavailable, one line naming it (exit 1).
+    rig = open_capture_rig(cfg, realtime=settings.realtime, seed=settings.seed,
+                           source=str(settings.rig) if settings.rig is not None else None)
     try:
         manager = SessionManager(
             rig, settings.data_root, queue_limit=settings.queue_limit,
@@ -90,7 +84,8 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
             estop_timeout_s=settings.estop_timeout_s, root_lock=root_lock,
         )
         app = create_app(
-            manager, token=token, cors_origins=settings.cors_origins, max_body_bytes=settings.max_body_bytes,
+            manager, token=token, cors_origins=settings.cors_origins, allowed_hosts=settings.host_names(),
+            max_body_bytes=settings.max_body_bytes,
             manage_lifecycle=True, resume_interrupted=settings.resume_interrupted,
             shutdown_timeout_s=settings.shutdown_timeout_s,
         )

@@ -1,4 +1,9 @@
-"""``m2s2hil sessions``: list stored sessions and show one."""
+"""``m2s2hil sessions``: list stored sessions, show one, rebuild a damaged journal.
+
+``list``, ``show`` and ``show --verify`` only read: they open the journal read-only and
+change nothing in the folder, even while a capture writes the session. A damaged journal
+is one line (``show``) or one row marked ``damaged`` (``list``, the others still listed);
+``repair`` rebuilds it from the frame files' own metadata and the manifest."""
 
 from __future__ import annotations
 
@@ -10,7 +15,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from m2s2hil.commands.compact import compact_cmd
+
 app = typer.Typer(help="Stored sessions.", no_args_is_help=True)
+app.command("compact")(compact_cmd)
 
 
 def _when(t: float | None) -> str:
@@ -31,9 +39,28 @@ def list_cmd(
         t.add_column(col)
     for s in infos:
         t.add_row(s.session_id, s.state, s.satellite or "-", s.build or "-", str(s.frames), _when(s.updated))
-    Console().print(t)
+    Console(width=200).print(t)
     if not infos:
         typer.echo("no sessions")
+    for s in infos:
+        if s.state == "damaged":
+            typer.echo(f"{s.session_id}: damaged: {s.error}; rebuild with: m2s2hil sessions repair "
+                       f"{s.session_id} --root {root}")
+
+
+@app.command("repair")
+def repair_cmd(
+    session: str = typer.Argument(..., help="session id"),
+    root: Path | None = typer.Option(None, "--root", help="data root"),
+    force: bool = typer.Option(False, "--force", help="rebuild even a sound journal"),
+) -> None:
+    """Rebuild a damaged journal from the frame files' metadata and the manifest (the old
+    journal is kept beside it; damaged files go to quarantine/ and a resume recaptures them)."""
+    from m2s2hil.store.repair import repair_session
+    from m2s2hil.store.session import default_data_root
+
+    report = repair_session(root or default_data_root(), session, force=force)
+    typer.echo(report.line())
 
 
 @app.command("show")

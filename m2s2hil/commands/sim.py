@@ -19,8 +19,12 @@ def snapshot(
     out: Path = typer.Option(Path("."), "--out", help="output directory"),
     exposure_ms: float | None = typer.Option(None, "--exposure-ms", help="exposure; default: auto"),
     gain: float = typer.Option(1.0, "--gain", help="linear analog gain"),
-    spot_angle: float = typer.Option(45.0, "--spot-angle", help="spotlight incidence from the camera axis"),
-    temperature: float = typer.Option(35.0, "--temperature", help="sensor temperature, °C"),
+    spot_angle: float | None = typer.Option(
+        None, "--spot-angle", help="spotlight incidence from the camera axis (default: the rig file's, 45)"
+    ),
+    temperature: float | None = typer.Option(
+        None, "--temperature", help="sensor temperature, °C (default: the rig file's, 35)"
+    ),
     seed: int = typer.Option(0, "--seed", help="sensor noise / fixed-pattern seed"),
     rig: Path | None = typer.Option(None, "--rig", help="rig TOML (default: built-in simulated rig)"),
     panel_width: int | None = typer.Option(None, "--panel-width", help="also write a side-by-side panel PNG"),
@@ -30,13 +34,11 @@ def snapshot(
 
     from m2s2hil.catalog import load_catalog
     from m2s2hil.config import load_rig
-    from m2s2hil.errors import ConfigError, UsageError
+    from m2s2hil.errors import UsageError
+    from m2s2hil.sim_config import build_frame_source, build_world
     from m2s2hil.simulators.clock import VirtualClock
-    from m2s2hil.simulators.frames import SimFrameSource
     from m2s2hil.simulators.scene import SceneError
-    from m2s2hil.simulators.sensor import sensor_params_from
     from m2s2hil.simulators.snapshot import write_snapshot
-    from m2s2hil.simulators.world import LampInfo, World
 
     cat = load_catalog()
     cfg = load_rig(rig)
@@ -47,14 +49,11 @@ def snapshot(
         raise UsageError(f"--exposure-ms {exposure_ms} is outside the TOUCAN's 0.1 … 5000 ms")
     if not gain > 0:
         raise UsageError(f"--gain must be positive, got {gain}")
-    try:
-        sensor_params = sensor_params_from(cfg.simulation.get("sensor"))  # type: ignore[arg-type]
-    except (KeyError, ValueError, TypeError) as exc:
-        raise ConfigError(str(rig or "<built-in simulated rig>"), "simulation.sensor", str(exc)) from None
+    if spot_angle is not None and not -90 < spot_angle < 90:
+        raise UsageError(f"--spot-angle {spot_angle} must be between -90 and 90 degrees")
 
     clock = VirtualClock()
-    lamp_info = {lc.channel: LampInfo(name, lc.kind, lc.warmup_s) for name, lc in cfg.lamps.items()}
-    world = World(clock, lamp_info=lamp_info, sensor_temperature_c=temperature, spot_angle_deg=spot_angle)
+    world = build_world(cfg, clock, spot_angle_deg=spot_angle, sensor_temperature_c=temperature)
     world.mount(b.satellite, b.key)
     tilt_deg = cfg.elevations[elev.key]
     world.attach_axis("turntable", lambda: az)
@@ -65,8 +64,7 @@ def snapshot(
 
     model = cfg.camera.model
     try:
-        source = SimFrameSource(world, model, lambda s, bk: cat.build(s, bk).materials,
-                                sensor_params=sensor_params, seed=seed)
+        source = build_frame_source(cfg, world, seed=seed)
         exposure_s = 5e-3 if exposure_ms is None else exposure_ms / 1000.0
         frame = source.capture(exposure_s, gain)
         if exposure_ms is None:

@@ -361,7 +361,13 @@ async function pollRun() {
   $("run-faults").textContent = String(s.faults.length);
   const ended = ["completed", "completed_with_gaps", "failed", "aborted", "cancelled"].includes(s.state);
   $("run-pause").disabled = ended || s.state !== "running";
-  $("run-resume").disabled = ended && s.state !== "aborted" && !s.resumable;
+  const lens = lensWait(s);
+  $("run-reason").textContent = s.pause_reason ? "paused: " + s.pause_reason : "";
+  $("run-reason").hidden = !s.pause_reason;
+  $("run-lens").hidden = lens === null;
+  $("run-lens").textContent = lens === null ? "" : (lens ? "Lens cap is on — continue" : "Lens cap is off — continue");
+  $("run-lens").dataset.capped = String(lens);
+  $("run-resume").disabled = (ended && s.state !== "aborted" && !s.resumable) || lens !== null;
   $("run-abort").disabled = ended;
   await fillSheet(id, $("run-sheet"), "sheetN");
   $("run-qc").textContent = String($("run-sheet").querySelectorAll("figure.flagged").length);
@@ -384,6 +390,17 @@ async function fillSheet(id, box, key) {
   state[key] += r.items.length;
 }
 
+// A real rig's darks: the session waits for the operator's word on the lens cap (the pause
+// reasons of m2s2hil/engine/darks.py); null when it waits for nothing of the kind.
+const LENS_WAITS = { "lens_cap: put the lens cap on": true, "lens_cap: take the lens cap off": false };
+function lensWait(s) {
+  return s.state === "paused" && Object.hasOwn(LENS_WAITS, s.pause_reason ?? "") ? LENS_WAITS[s.pause_reason] : null;
+}
+$("run-lens").addEventListener("click", async () => {
+  const capped = $("run-lens").dataset.capped === "true";
+  if (state.watched) await guarded(() => api("POST", `/sessions/${state.watched}/lens`, { capped }));
+  pollRun();
+});
 $("run-pause").addEventListener("click", () => control("pause"));
 $("run-resume").addEventListener("click", () => control("resume"));
 $("run-abort").addEventListener("click", () => { if (confirm("Abort the session? What is stored is kept.")) control("abort"); });

@@ -1,4 +1,4 @@
-"""Continuous-mode capture for the engine: one pass per lighting condition and tilt.
+"""Continuous capture: the steps for ``mode = "continuous"``, one pass per lighting condition and tilt.
 
 Per pass the lamps of the condition go on and the tilt moves; with auto exposure the
 condition is metered at the pass's first mark; then the turntable turns at ω while the
@@ -6,7 +6,11 @@ camera streams, and the frame nearest each azimuth mark (by timestamp and read-b
 kept (the matching is :func:`m2s2hil.engine.marks.run_pass`). Blur ω·t_exp is recorded per
 frame (``meta["continuous"]``) and per pass (journal event ``continuous_pass``).
 
-ω is the engine's ``speed_dps`` if set, otherwise the plan's ω per condition
+The turntable's continuous rotation is the capability the rig recorded when it opened
+(``rig.rotation``); a rig without it is refused before anything moves.
+
+ω (:class:`SpeedSettings`, ``EngineOptions.continuous``) is ``speed_dps`` if set, otherwise
+the plan's ω per condition
 (:func:`m2s2hil.plan.estimate_continuous`), limited so the blur at ``radius_px`` from the
 axis stays under ``max_blur_px`` when that is set. A frame is accepted within
 ``max_angle_error_deg`` of its mark, by default 1.5 frame spacings (at most half an
@@ -16,7 +20,7 @@ azimuth step).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,27 +28,23 @@ import numpy as np
 
 from m2s2hil.config import RigConfig
 from m2s2hil.drivers.errors import FrameIncomplete
-from m2s2hil.engine.darks import Dark, SessionDarks
-from m2s2hil.engine.exposure import AutoExposure, CameraControl
+from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.engine.exposure_search import ExposureResult
-from m2s2hil.engine.frames import FrameStages
-from m2s2hil.engine.marks import PassReport, blur_estimate, run_pass
+from m2s2hil.engine.marks import Match, PassReport, blur_estimate, run_pass
+from m2s2hil.engine.steps import CaptureKit, SharedSteps
+from m2s2hil.errors import UsageError
 from m2s2hil.plan import CaptureEvent, ContinuousEstimate, Sweep, estimate_continuous
-from m2s2hil.rig.opened import Rig
-from m2s2hil.rig.operations import RigOps
-from m2s2hil.store.session import SessionStore
-
-Submit = Callable[[CaptureEvent, np.ndarray, dict, Dark | None, Any], None]
+from m2s2hil.rig.opened import AxisRole
 
 
 @dataclass(frozen=True)
 class SpeedSettings:
     """The engine's continuous-mode options (see the module docstring)."""
 
-    speed_dps: float | None
-    max_blur_px: float | None
-    max_angle_error_deg: float | None
-    radius_px: float
+    speed_dps: float | None = None
+    max_blur_px: float | None = None
+    max_angle_error_deg: float | None = None
+    radius_px: float = 400.0
 
     def estimate(self, sweep: Sweep, config: RigConfig) -> ContinuousEstimate:
         """The plan's continuous model at this blur limit (or speed override)."""
@@ -72,54 +72,67 @@ class SpeedSettings:
         return min(sweep.azimuth_step_deg / 2, max(0.1, 1.5 * speed * period))
 
 
-class PassCapture:
-    """Captures continuous passes and keeps their reports and the per-frame blur for the run summary.
+class ContinuousSteps(SharedSteps):
+    """:class:`~m2s2hil.engine.steps.CaptureSteps` for ``mode = "continuous"``: a unit is what
+    is still to do of one pass. Keeps the pass reports and the per-frame blur for the summary."""
 
-    The engine supplies ``set_condition(event)`` (lamps of the event's condition on),
-    ``submit(event, data, meta, dark, truth)`` (into the pipeline) and ``should_stop()``
-    (a pause or abort was asked for: the pass stops early, its remaining marks stay pending).
-    """
-
-    def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, *, camera: CameraControl,
-                 exposure: AutoExposure, darks: SessionDarks, frames: FrameStages,
-                 set_condition: Callable[[CaptureEvent], None], submit: Submit,
-                 should_stop: Callable[[], bool]) -> None:
-        self.rig = rig
-        self.store = store
-        self.sweep = sweep
-        self.ops = ops
-        self.camera = camera
-        self.exposure = exposure
-        self.darks = darks
-        self.frames = frames
-        self.set_condition = set_condition
-        self.submit = submit
-        self.should_stop = should_stop
+    def __init__(self, kit: CaptureKit, settings: SpeedSettings) -> None:
+        super().__init__(kit)
+        self.settings = settings
         self.blur_deg: list[float] = []  # per stored frame
-        self.passes: list[dict] = []  # per pass: its report
+        self.passes: list[dict[str, Any]] = []  # per pass: its report
 
-    def capture(self, todo: list[CaptureEvent], settings: SpeedSettings, attempt: int) -> None:
+    def setup(self) -> None:
+        if self.rig.rotation is None:
+            raise UsageError(f"the turntable ({self.rig.turntable.name}) cannot rotate continuously: "
+                             "capture this sweep in stop-and-go mode")
+        super().setup()
+
+    def unit_key(self, event: CaptureEvent) -> Hashable | None:
+        return event.pass_index if event.kind == "frame" else None
+
+    def execute(self, unit: Sequence[CaptureEvent], attempt: int) -> None:
+        if unit[0].kind == "dark":
+            self.capture_dark(unit[0])
+        else:
+            self._capture_pass(unit, attempt)
+
+    def lower_bound_s(self) -> float:
+        return self.settings.estimate(self.kit.sweep, self.rig.config).lower_bound_s
+
+    def summary(self) -> dict[str, Any]:
+        out = super().summary()
+        if self.blur_deg:
+            out["blur_deg"] = {"mean": float(np.mean(self.blur_deg)), "max": float(np.max(self.blur_deg))}
+            out["passes"] = self.passes
+        return out
+
+    def _capture_pass(self, todo: Sequence[CaptureEvent], attempt: int) -> None:
         """One pass over the marks of ``todo`` (events of one pass); FrameIncomplete if marks were missed."""
+        kit, settings = self.kit, self.settings
+        rotation = self.rig.rotation
+        assert rotation is not None  # checked in setup()
         clock = self.rig.clock
         config = self.rig.config
+        sweep = kit.sweep
         first = todo[0]
         assert first.tilt_deg is not None and first.lighting is not None
-        self.set_condition(first)
-        moved = ["tilt"] if self.ops.move("tilt", first.tilt_deg) else []
+        kit.set_condition(first)
+        moved: list[AxisRole] = ["tilt"] if self.ops.move("tilt", first.tilt_deg) else []
         exposure, auto = self._exposure_for_pass(first)
-        dark = self.darks.for_setting(exposure, first.gain)
-        speed = settings.omega(self.sweep, config, first.lighting, exposure)
-        self.camera.configure(exposure, first.gain)
+        dark = kit.darks.for_setting(exposure, first.gain)
+        speed = settings.omega(sweep, config, first.lighting, exposure)
+        kit.camera.configure(exposure, first.gain)
         blur = blur_estimate(speed, exposure, settings.radius_px)
         marks: dict[float, list[CaptureEvent]] = {}
         for ev in todo:
             assert ev.azimuth_deg is not None
             marks.setdefault(ev.azimuth_deg, []).append(ev)
 
-        def on_match(match: Any, frame_info: list[dict]) -> None:
+        def on_match(match: Match, frame_info: list[dict[str, Any]]) -> None:
             evs = sorted(match.key, key=lambda e: e.frame)
             for ev, frame, extra in zip(evs, match.frames, match.extras, strict=False):
-                meta = self.frames.meta(ev, frame, exposure, dark, extra["clock_s"], extra["wall"], attempt)
+                meta = kit.frames.meta(ev, frame, exposure, dark, extra["clock_s"], extra["wall"], attempt)
                 meta["pose"] = {"turntable_deg": extra["angle_deg"], "tilt_deg": self.ops.pose()["tilt"],
                                 "turntable_source": "interpolated read-back at mid-exposure"}
                 meta["continuous"] = {
@@ -130,38 +143,39 @@ class PassCapture:
                 if auto is not None:
                     meta["auto_exposure"] = auto.to_dict()
                 self.blur_deg.append(blur.deg)
-                self.submit(ev, frame.data, meta, dark, extra.get("truth"))
+                kit.hooks.submit(ev, frame.data, meta, dark, extra.get("truth"))
 
-        def on_frame(frame: Any) -> dict:
-            return {"clock_s": clock.monotonic(), "wall": clock.wall(), "truth": self.frames.truth()}
+        def on_frame(frame: Frame) -> dict[str, Any]:
+            return {"clock_s": clock.monotonic(), "wall": clock.wall(), "truth": kit.frames.truth()}
 
         self.ops.wait_ready(clock.monotonic() + self.ops.settle_s(moved, first.settle_s))
         report: PassReport = run_pass(
-            self.rig, self.ops, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
-            exposure_s=exposure, k=self.sweep.frames_per_pose,
-            window_deg=settings.match_window(self.sweep, config, speed, exposure),
-            on_match=on_match, should_stop=self.should_stop, on_frame=on_frame,
-            frame_timeout_s=exposure + self.camera.snap_timeout_s,
+            self.rig, self.ops, rotation, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
+            exposure_s=exposure, k=sweep.frames_per_pose,
+            window_deg=settings.match_window(sweep, config, speed, exposure),
+            on_match=on_match, should_stop=kit.hooks.should_stop, on_frame=on_frame,
+            frame_timeout_s=exposure + kit.camera.snap_timeout_s,
         )
         info = {"pass_index": first.pass_index, "lighting": first.lighting, "elevation": first.elevation,
                 "exposure_s": exposure, **report.to_dict(), **blur.to_dict()}
         self.passes.append(info)
-        self.store.record_event("continuous_pass", info)
+        kit.store.record_event("continuous_pass", info)
         if report.stopped_early:
-            return  # pause/abort: the engine's boundary handles it; what is left stays pending
+            return  # pause/abort: the runner's boundary handles it; what is left stays pending
         missing = [ev for _, evs in report.missing for ev in evs]
         if missing:
             raise FrameIncomplete(
                 f"no frame matched to {len(report.missing)} azimuth mark(s) "
                 f"({', '.join(f'{a:g}' for a, _ in report.missing[:5])} deg); "
                 f"{report.dropped} frame(s) dropped in the pass",
-                device=getattr(self.rig.camera, "name", "camera"), command="continuous pass",
+                device=self.rig.camera.name, command="continuous pass",
             )
 
     def _exposure_for_pass(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
-        if not self.exposure.needs_metering(ev):
-            return self.exposure.exposure(ev)
+        exposure = self.kit.exposure
+        if not exposure.needs_metering(ev):
+            return exposure.exposure(ev)
         assert ev.azimuth_deg is not None
         self.ops.move("turntable", ev.azimuth_deg)  # meter at the pass's first mark
         self.ops.wait_ready(self.rig.clock.monotonic())
-        return self.exposure.exposure(ev)
+        return exposure.exposure(ev)

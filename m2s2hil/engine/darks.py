@@ -6,6 +6,15 @@
 - every frame at an (exposure, gain) reuses that setting's dark: one taken in this run, one
   the store already holds (a resumed session loads it), or one captured on demand (e.g. for
   an exposure that auto exposure chose).
+- the lens cap on a real rig (a camera not simulated in this process, ``rig.lens_needs_operator``):
+  nothing here can put it on or check it, so the operator does, and is trusted. Before a dark
+  the run parks at a safe boundary (lamps off, motion stopped) with the pause reason
+  :data:`LENS_CAP_REASON` until the operator confirms the cap is on (``Engine.confirm_lens``);
+  planned darks (taken first, back to back) share one capping, and before the next lit unit
+  the run parks again with :data:`LENS_UNCAP_REASON`. A dark needed in the middle of a lit
+  unit (auto exposure, a temperature retake) is capped and uncapped on its own and the unit
+  is then captured again (:class:`LensCycled`): its lamps and pose were given up while parked.
+  A simulated camera's lens is capped by ``rig.cap_lens`` with no one asked.
 - temperature: when the sensor has drifted beyond
   ``processing.dark_temperature_tolerance_c`` from a dark's temperature, the dark is
   retaken under a new id (``<planned id>/t<n>``) and the planned id is aliased to it, so
@@ -18,7 +27,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -29,6 +38,20 @@ from m2s2hil.rig.operations import RigOps
 from m2s2hil.store.session import DarkRecord, SessionStore
 
 log = logging.getLogger(__name__)
+
+#: The pause reasons of a real rig waiting for the operator (``EngineStatus.pause_reason``).
+LENS_CAP_REASON = "lens_cap: put the lens cap on"
+LENS_UNCAP_REASON = "lens_cap: take the lens cap off"
+
+
+def lens_reason(capped: bool) -> str:
+    """The pause reason while the run waits for the operator to cap (True) or uncap the lens."""
+    return LENS_CAP_REASON if capped else LENS_UNCAP_REASON
+
+
+class LensCycled(Exception):
+    """A dark was taken in the middle of a lit unit on a real rig: the run parked for the
+    operator twice (lamps off, pose forgotten), so the runner captures the unit again."""
 
 
 @dataclass(frozen=True)
@@ -47,17 +70,21 @@ class SessionDarks:
     """Darks by id, with the alias from a planned dark id to the id of its retake.
 
     ``on_captured(event)`` is called after each dark this object captures and stores (the
-    engine counts a planned one as done).
+    engine counts a planned one as done). ``operator_lens(capped)`` returns once the operator
+    has confirmed the lens cap on (True) or off (the engine parks until then); it is used
+    when ``rig.lens_needs_operator``, else the rig caps its own (simulated) lens.
     """
 
     def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, camera: CameraControl,
-                 on_captured: Callable[[CaptureEvent], None]) -> None:
+                 on_captured: Callable[[CaptureEvent], None],
+                 operator_lens: Callable[[bool], None] | None = None) -> None:
         self.rig = rig
         self.store = store
         self.sweep = sweep
         self.ops = ops
         self.camera = camera
         self.on_captured = on_captured
+        self.operator_lens = operator_lens
         self._darks: dict[str, Dark] = {}
         self._alias: dict[str, str] = {}  # planned dark id -> id of a retaken dark
 
@@ -79,13 +106,15 @@ class SessionDarks:
         from m2s2hil.processing.dark import MasterDark
 
         m = rec.meta
-        # The store keeps masters as float32 TIFFs; ours are whole DN (rounded at build time).
+        # Stored as uint16 (float32 in legacy sessions); ours are whole DN (rounded at build time).
         data = np.clip(np.rint(self.store.load_dark(rec.dark_id)), 0, 65535).astype(np.uint16)
+        if rec.reduce not in ("mean", "median"):
+            raise ValueError(f"dark {rec.dark_id}: unknown reduction {rec.reduce!r} in the journal")
         master = MasterDark(
             data=data, created=str(m.get("created", "")),
             camera_serial=str(m.get("camera_serial", "unknown")), n_frames=rec.n_frames,
             exposure_s=rec.exposure_s, gain=rec.gain, temperature_c=float(m.get("temperature_c", math.nan)),
-            reduce=rec.reduce,
+            reduce=cast(Literal["mean", "median"], rec.reduce),
         )
         dark = self._darks[rec.dark_id] = Dark(rec.dark_id, master)
         self._alias[dark_event_id(rec.exposure_s, rec.gain)] = rec.dark_id
@@ -99,14 +128,22 @@ class SessionDarks:
             rec = next(d for d in self.store.darks() if d.dark_id == ev.event_id)
             return self.load(rec)
         cam = self.rig.camera
-        self.rig.cap_lens(True)
-        self.ops.lens_capped = True
-        try:
+        if self.operator_lens is not None and self.rig.lens_needs_operator:
+            # Real rig: parks until the operator confirms the cap. It stays on after the
+            # dark (the next planned dark needs it too); the runner asks for it off before
+            # the next lit unit, or a failed dark's retry finds it still on.
+            self.operator_lens(True)
             self.camera.configure(ev.exposure_s, ev.gain)
             frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
-        finally:
-            self.rig.cap_lens(False)
-            self.ops.lens_capped = False
+        else:
+            self.rig.cap_lens(True)
+            self.ops.lens_capped = True
+            try:
+                self.camera.configure(ev.exposure_s, ev.gain)
+                frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
+            finally:
+                self.rig.cap_lens(False)
+                self.ops.lens_capped = False
         master = build_master_dark(
             [f.data for f in frames], reduce=self.sweep.dark.reduce, exposure_s=ev.exposure_s, gain=ev.gain,
             temperature_c=[f.temperature_c for f in frames], camera=getattr(cam, "serial", None) or cam.name,
@@ -120,6 +157,11 @@ class SessionDarks:
         if ev.event_id != base:
             self._alias[base] = ev.event_id
         self.on_captured(ev)
+        if ev.index < 0 and self.operator_lens is not None and self.rig.lens_needs_operator:
+            # Not a planned dark: taken in the middle of a lit unit, whose lamps and pose the
+            # parking gave up. Cap off, then the unit again (it finds this dark stored).
+            self.operator_lens(False)
+            raise LensCycled(f"dark {ev.event_id} taken under the operator's lens cap: the unit again")
         return dark
 
     def check_temperature(self, dark: Dark | None, exposure_s: float, gain: float,

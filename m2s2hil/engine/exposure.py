@@ -4,7 +4,7 @@
 timeout of the exposure plus ``snap_timeout_s``; after a fault or a pause the engine calls
 :meth:`CameraControl.forget` so the next capture re-commands the setting.
 
-:class:`AutoExposure` meters once per lighting condition when the sweep asks for it
+:class:`ExposureMeter` meters once per lighting condition when the sweep asks for it
 (:func:`m2s2hil.engine.exposure_search.find_exposure`), records the result as a journal event
 ``auto_exposure`` and reuses it for every later frame of that condition; a resumed session
 restores the results from the journal instead of metering again.
@@ -19,7 +19,7 @@ import numpy as np
 
 from m2s2hil.config import CameraModel
 from m2s2hil.engine.exposure_search import ExposureResult, find_exposure
-from m2s2hil.plan import CaptureEvent, Sweep
+from m2s2hil.plan import AutoExposureSettings, CaptureEvent, Sweep
 from m2s2hil.rig.opened import Rig
 from m2s2hil.store.session import SessionStore
 
@@ -47,7 +47,7 @@ class CameraControl:
         return self.rig.camera.snap(timeout=exposure_s + self.snap_timeout_s)
 
 
-class AutoExposure:
+class ExposureMeter:
     """The exposure of each capture: the planned one, or the metered one per lighting condition."""
 
     def __init__(self, sweep: Sweep, store: SessionStore, camera: CameraControl, model: CameraModel) -> None:
@@ -90,6 +90,7 @@ class AutoExposure:
 
     def _meter(self, ev: CaptureEvent) -> ExposureResult:
         ae = self.sweep.exposure
+        assert isinstance(ae, AutoExposureSettings)  # only metered when the sweep asks for it
         model = self.model
 
         def measure(t: float) -> np.ndarray:

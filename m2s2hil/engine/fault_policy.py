@@ -41,6 +41,12 @@ def fault_class_of(exc: BaseException) -> str:
     return fc if isinstance(fc, str) and fc in FAULT_CLASSES else "other"
 
 
+def device_of(exc: BaseException) -> str | None:
+    """The device an error names (driver errors carry it as ``device``), if any."""
+    dev = getattr(exc, "device", None)
+    return dev if isinstance(dev, str) else None
+
+
 class FaultRule(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -10,13 +10,14 @@ Frame metadata (``meta`` of each stored frame): ``exposure_s`` and ``gain`` as t
 reported them, ``temperature_c``, ``pose`` (read-back of both axes), ``lamps_on``
 (channels) and ``lamp_names``, ``timestamp`` (wall), ``clock_s`` (engine clock),
 ``host_wall``, ``device_timestamp_s``, ``host_time_s``, ``block_id``, ``dark_id`` and
-``dark`` (its provenance), ``processing_method``, ``software_version``, ``rig_digest``,
-``attempt`` (1 + failed tries of this capture),
+``dark`` (its provenance), ``attempt`` (1 + failed tries of this capture),
 ``qc`` (the hook's result), ``saturated_fraction``, ``processing_warnings``; with auto
 exposure ``auto_exposure``; in continuous mode ``continuous`` (angle at mid-exposure, its
 error to the mark, measured speed, blur in degrees and pixels). The QC hook is
 ``qc(processed_frame, event, meta) -> score``; its result is ``meta["qc"]``, a failure is
-``meta["qc_error"]`` (the frame is kept).
+``meta["qc_error"]`` (the frame is kept). The store adds what it owns (session, event,
+``processing_method``, ``software_version``, ``rig_digest``, storage format, cube recipe) and
+encodes the whole once (m2s2hil.store.frame_meta); those keys are never set here.
 
 On a simulated rig the simulator's label map is stored with the frame as its
 ``truth_labels`` file (``store.frame(id).files["truth_labels"]``, a checksummed PNG) and
@@ -88,7 +89,9 @@ class FrameStages:
         if proc is None:
             factory = self.processor_factory
             if factory is None:
-                from m2s2hil.processing.chain import FrameProcessor as factory
+                from m2s2hil.processing.chain import FrameProcessor
+
+                factory = FrameProcessor
             kw: dict[str, Any] = {"dark": dark.master if dark is not None else None}
             if self.rig.calibration is not None:  # crosstalk, white reference, real layout
                 kw["calibration"] = self.rig.calibration
@@ -118,9 +121,6 @@ class FrameStages:
             "pixel_format": frame.pixel_format,
             "dark_id": dark.dark_id if dark is not None else None,
             "dark": dark.master.provenance() if dark is not None else None,
-            "processing_method": self.sweep.processing,
-            "software_version": self.version,
-            "rig_digest": self.rig.config.digest,
             "mode": self.sweep.mode,
             "attempt": attempt,
             "simulated": bool(self.rig.simulated),
@@ -130,7 +130,7 @@ class FrameStages:
         """The simulator's label map and pose for the frame just taken (None on a real rig)."""
         if not self.save_truth:
             return None
-        src = self.rig.extras.get("frame_source")
+        src = self.rig.frame_source
         if src is None:
             return None
         t = src.truth()
@@ -159,7 +159,8 @@ class FrameStages:
                 log.exception("QC hook failed on %s", ev.event_id)
                 meta["qc"] = None
                 meta["qc_error"] = f"{type(exc).__name__}: {exc}"
-        preview = rgb_preview(cube, self.rig.config.camera.model.bands_nm)
+        white = calibrated_white(cap.processor)
+        preview = rgb_preview(cube, self.rig.config.camera.model.bands_nm, white=white)
         return FrameToStore(cap.data, cube, preview, meta, cap.truth)
 
     def write(self, ev: CaptureEvent, p: FrameToStore) -> Any:
@@ -194,13 +195,26 @@ def jsonable(v: Any) -> Any:
     return v
 
 
-def rgb_preview(cube: np.ndarray | None, bands_nm: tuple[float, ...]) -> np.ndarray | None:
-    """An 8-bit RGB preview from the bands nearest 650/550/470 nm, stretched to the 99.5th percentile."""
+def calibrated_white(processor: Any) -> np.ndarray | None:
+    """A white reference's signal per band when the processor flat-fields with one (its cubes are then
+    reflectance: the white reads its own reflectance), else None (the preview uses grey world)."""
+    cal = getattr(processor, "calibration", None)
+    if cal is None or getattr(cal, "white_mosaic", None) is None:
+        return None
+    refl = getattr(cal, "white_reflectance", None)
+    return np.ones(1) if refl is None else np.atleast_1d(np.asarray(refl, dtype=np.float64))
+
+
+def rgb_preview(cube: np.ndarray | None, bands_nm: tuple[float, ...],
+                white: np.ndarray | None = None) -> np.ndarray | None:
+    """8-bit sRGB preview (``processing.display.false_colour``): bands nearest 640/550/470 nm,
+    white-balanced (grey world, or ``white``: a white reference's signal per band), sRGB curve."""
+    from m2s2hil.processing.display import false_colour
+
     if cube is None or cube.ndim != 3:
         return None
-    nm = np.asarray(bands_nm)
-    idx = [int(np.argmin(np.abs(nm - t))) for t in (650.0, 550.0, 470.0)]
-    bands_first = cube.shape[0] == len(nm)
-    rgb = np.stack([cube[i] if bands_first else cube[..., i] for i in idx], axis=-1).astype(np.float32)
-    hi = float(np.percentile(rgb[::4, ::4], 99.5)) or 1.0
-    return np.clip(rgb * (255.0 / hi), 0, 255).astype(np.uint8)
+    if cube.shape[0] != len(bands_nm):  # (H, W, bands)
+        cube = np.moveaxis(cube, -1, 0)
+    if white is not None and np.size(white) == 1:  # one reflectance for every band
+        white = np.full(len(bands_nm), float(np.ravel(white)[0]))
+    return false_colour(cube, bands_nm, white=white)

@@ -24,9 +24,14 @@ import collections
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from m2s2hil.drivers.interfaces import ContinuousRotation
+    from m2s2hil.rig.opened import Rig
+    from m2s2hil.rig.operations import RigOps
 
 
 class AngleTrack:
@@ -237,8 +242,9 @@ class PassReport:
 
 
 def run_pass(
-    rig: Any,
-    ops: Any,
+    rig: Rig,
+    ops: RigOps,
+    rotation: ContinuousRotation,
     *,
     marks: list[tuple[float, Any]],
     speed_dps: float,
@@ -254,8 +260,9 @@ def run_pass(
     """One continuous pass over ``marks`` (commanded turntable angles, in any order).
 
     Moves the turntable (verified) to the first mark minus the run-up, starts the
-    stream and the rotation, matches frames to marks and calls ``on_match`` for each,
-    and always stops rotation and stream before returning or raising.
+    stream and the rotation (``rotation``: the turntable's, as the rig recorded it),
+    matches frames to marks and calls ``on_match`` for each, and always stops rotation
+    and stream before returning or raising.
     """
     clock = rig.clock
     tt, cam = rig.turntable, rig.camera
@@ -306,7 +313,7 @@ def run_pass(
 
     cam.start_stream(fps)
     try:
-        tt.rotate(speed_dps, direction=direction)
+        rotation.rotate(speed_dps, direction=direction)
         poll()
         while not matcher.done():
             if should_stop():

@@ -1,9 +1,12 @@
-"""The capture engine: runs a :class:`~m2s2hil.plan.Sweep` on a :class:`~m2s2hil.rig.opened.Rig`
-into a :class:`~m2s2hil.store.session.SessionStore`.
+"""The capture runner: runs a :class:`~m2s2hil.plan.Sweep` on a :class:`~m2s2hil.rig.opened.Rig`
+into a :class:`~m2s2hil.store.session.SessionStore`, driving a
+:class:`~m2s2hil.engine.steps.CaptureSteps` implementation (the shape of pymmcore-plus's
+``MDARunner`` driving a ``PMDAEngine``). Build one with :func:`m2s2hil.engine.build.build_run`.
 
 Use::
 
-    engine = Engine(rig, store, sweep, policy=FaultPolicy(), on_event=print)
+    engine = Engine(rig, store, sweep, options=EngineOptions(), policy=FaultPolicy(), qc=hook,
+                    on_event=print)
     status = engine.run()            # blocking, in this thread; SessionFailed on failure
     # or
     engine.start()                   # in a daemon thread
@@ -13,42 +16,30 @@ Use::
     listener = engine.listen()       # bounded queue of events for another thread (SSE)
     final = engine.wait()            # join the thread, final status
 
-    engine = Engine.resume_session(rig, root, session_id)   # after a crash: skips what is stored
+The runner owns: the run states and their transitions, pause/abort honoured at safe
+boundaries, the fault policy, the pipeline (processing and storage threads behind bounded
+queues, :mod:`m2s2hil.engine.pipeline`, stages in :mod:`m2s2hil.engine.frames`), events and
+status, the safe state on every exit path. The steps own how a unit of events is captured:
+:class:`~m2s2hil.engine.stop_and_go.StopAndGoSteps` or
+:class:`~m2s2hil.engine.continuous_steps.ContinuousSteps` by the sweep's mode. Tuning is
+:class:`~m2s2hil.engine.options.EngineOptions`.
 
-Constructor options: ``policy`` (:class:`~m2s2hil.engine.fault_policy.FaultPolicy`), ``on_event``
-(a subscriber from the start), ``qc`` (the capture-time QC hook, see
-:mod:`m2s2hil.engine.frames`), ``process_depth``/``store_depth`` (queue bounds),
-``store_workers`` (parallel writers), continuous mode (:mod:`m2s2hil.engine.continuous_steps`):
-``speed_dps`` (override) or ``max_blur_px`` (ω limited so ω·t_exp stays under it at
-``radius_px`` from the axis; default: the plan's ω), ``max_angle_error_deg``;
-``retry_skipped`` (a resumed run retries earlier gaps), ``check_disk``, ``save_truth``,
-``snap_timeout_s``, ``processor_factory``.
-
-Control: ``pause``/``abort`` are honoured at the next safe boundary (between captures; in
-continuous mode between frames, stopping the turntable); ``resume``/``clear`` continue a
-pause or a suspension. Illegal requests (e.g. ``resume`` while running, anything after the
-end) raise :class:`~m2s2hil.engine.state.IllegalTransition` (a ``UsageError``: HTTP 409).
-Final states: ``completed`` (gaps allowed, each recorded), ``aborted``, ``failed``.
-
-What a run does, in the plan's order (``sweep.expand(rig.config)``):
-
-- *dark* events: master darks (:mod:`m2s2hil.engine.darks`: capture, reuse, retake on
-  temperature drift).
-- *frame* events, stop-and-go: lamps of the condition on (only when they change), tilt then
-  turntable moved and verified against the read-back within the axis tolerance, settle and
-  lamp warm-up waited (the warm-up overlaps the move), the exposure
-  (:mod:`m2s2hil.engine.exposure`: automatic once per lighting condition when the sweep
-  asks for it), one snap, then the frame goes down the pipeline.
-- continuous mode: one pass per lighting and tilt (:mod:`m2s2hil.engine.continuous_steps`).
-- pipeline (:mod:`m2s2hil.engine.pipeline`): processing and storage (:mod:`m2s2hil.engine.frames`,
-  which also lists the frame metadata) run in their own threads behind bounded queues;
-  results come back to the engine thread at safe boundaries.
+Control: ``pause``/``abort`` are honoured at the next safe boundary (between units; in
+continuous mode between frames, stopping the turntable); ``resume`` continues a
+pause or a suspension. On a real rig the run also parks for the operator's lens cap before
+darks and after them (pause reason ``lens_cap: ...``, :mod:`m2s2hil.engine.darks`);
+``confirm_lens`` continues it, ``resume`` does not. Illegal requests (e.g. ``resume`` while
+running, anything after the end) raise :class:`~m2s2hil.engine.state.IllegalTransition` (a
+``UsageError``: HTTP 409).
+Final states (decided in :meth:`Engine._final_state`): ``completed`` (every planned event
+stored), ``completed_with_gaps`` (the rest skipped, each recorded), ``aborted``, ``failed``
+(also when not one frame was stored).
 
 Faults go through the :class:`~m2s2hil.engine.fault_policy.FaultPolicy`; every fault is recorded
 (status, event bus, journal event ``fault``) and every capture given up is recorded with
-``store.record_skip`` and its reason. Pause and abort are honoured between captures. Every
-exit path (completion, abort, failure, Ctrl-C, even a failing teardown step) ends with lamps
-off and motion stopped (:meth:`RigOps.make_safe`), and the original error is kept.
+``store.record_skip`` and its reason. Every exit path (completion, abort, failure, Ctrl-C,
+even a failing teardown step) ends with lamps off and motion stopped
+(:meth:`RigOps.make_safe`), and the original error is kept.
 """
 
 from __future__ import annotations
@@ -60,15 +51,16 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from m2s2hil.engine.continuous_steps import PassCapture, SpeedSettings
-from m2s2hil.engine.darks import Dark, SessionDarks
-from m2s2hil.engine.exposure import AutoExposure, CameraControl
-from m2s2hil.engine.fault_policy import FaultPolicy, fault_class_of
+from m2s2hil.engine.continuous_steps import ContinuousSteps
+from m2s2hil.engine.darks import Dark, LensCycled, SessionDarks, lens_reason
+from m2s2hil.engine.exposure import CameraControl, ExposureMeter
+from m2s2hil.engine.fault_policy import FaultPolicy, device_of, fault_class_of
 from m2s2hil.engine.frames import CapturedFrame, FrameStages, QcHook, qc_number
+from m2s2hil.engine.options import EngineOptions
 from m2s2hil.engine.pipeline import Pipeline, PipelineStats
 from m2s2hil.engine.state import (
     Captured,
@@ -86,11 +78,13 @@ from m2s2hil.engine.state import (
     StateChanged,
     check_transition,
 )
+from m2s2hil.engine.steps import CaptureKit, CaptureSteps, RunHooks
+from m2s2hil.engine.stop_and_go import StopAndGoSteps
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.plan import CaptureEvent, Sweep, estimate
 from m2s2hil.rig.opened import Rig
 from m2s2hil.rig.operations import RigOps
-from m2s2hil.store.atomic import check_free_space
+from m2s2hil.store.atomic import DiskFull, check_free_space
 from m2s2hil.store.session import SessionStore, estimate_session_bytes, software_version
 
 log = logging.getLogger(__name__)
@@ -106,6 +100,13 @@ class SessionFailed(M2S2Error):
         self.status = status
         self.cause = cause
         super().__init__(f"session {status.session_id} failed: {status.error}")
+
+
+@runtime_checkable
+class SummarisingQc(Protocol):
+    """A QC hook that also keeps the distribution of its scores (for the run summary)."""
+
+    def summary(self) -> dict[str, Any]: ...
 
 
 class _AbortRequested(BaseException):
@@ -128,28 +129,19 @@ class Engine:
         store: SessionStore,
         sweep: Sweep | None = None,
         *,
+        options: EngineOptions | None = None,
         policy: FaultPolicy | None = None,
-        on_event: Callable[[EngineEvent], None] | None = None,
         qc: QcHook | None = None,
-        process_depth: int = 4,
-        store_depth: int = 4,
-        store_workers: int = 2,
-        speed_dps: float | None = None,
-        max_blur_px: float | None = None,
-        max_angle_error_deg: float | None = None,
-        radius_px: float = 400.0,
-        retry_skipped: bool = True,
-        check_disk: bool = True,
-        save_truth: bool = True,
-        snap_timeout_s: float | None = None,
-        processor_factory: Callable[..., Any] | None = None,
+        on_event: Callable[[EngineEvent], None] | None = None,
     ) -> None:
         self.rig = rig
         self.store = store
         self.sweep = sweep if sweep is not None else store.sweep
         if self.sweep.model_dump_json() != store.sweep.model_dump_json():
             raise UsageError(f"the sweep differs from the one session {store.session_id} was created with")
+        self.options = opts = options or EngineOptions()
         self.policy = policy or FaultPolicy()
+        self.qc = qc
         self.clock = rig.clock
         self.ops = RigOps(rig)
         self.bus = EventBus()
@@ -157,47 +149,40 @@ class Engine:
             self.bus.subscribe(on_event)
         self.events: list[CaptureEvent] = self.sweep.expand(rig.config)
         self._by_id = {e.event_id: e for e in self.events}
-        self.speed_dps = speed_dps
-        self.max_blur_px = max_blur_px
-        self.max_angle_error_deg = max_angle_error_deg
-        self.radius_px = radius_px
-        self.check_disk = check_disk
         self._version = software_version()
-        # The helpers that hold the capture logic; each gets what it needs, nothing more.
-        cam_timeout = rig.config.camera.timeout_s
-        self._camera = CameraControl(rig, cam_timeout if snap_timeout_s is None else snap_timeout_s)
-        self._exposure = AutoExposure(self.sweep, store, self._camera, rig.config.camera.model)
-        self._darks = SessionDarks(rig, store, self.sweep, self.ops, self._camera, self._dark_stored)
-        self._frames = FrameStages(rig, store, self.sweep, self.ops, qc=qc,
-                                   save_truth=save_truth and rig.simulated,
-                                   processor_factory=processor_factory, version=self._version)
-        self._passes = PassCapture(rig, store, self.sweep, self.ops, camera=self._camera,
-                                   exposure=self._exposure, darks=self._darks, frames=self._frames,
-                                   set_condition=self._set_condition, submit=self._submit,
-                                   should_stop=lambda: self.state is not S.RUNNING)
-        self._pipeline = Pipeline(self._frames.process, self._frames.write, process_depth=process_depth,
-                                  store_depth=store_depth, store_workers=store_workers,
+        self.steps = self._make_steps(opts, qc)
+        self._pipeline = Pipeline(self._frames.process, self._frames.write, process_depth=opts.process_depth,
+                                  store_depth=opts.store_depth, store_workers=opts.store_workers,
                                   name=f"engine-{store.session_id}")
 
+        # Resume trusts nothing unchecked: a stored capture whose files are missing or damaged
+        # is moved aside (kept, journalled) and captured again in this run.
+        if not store.writable:
+            raise UsageError(f"session {store.session_id} is open for reading; a run needs it open for "
+                             "writing (SessionStore.open(..., mode='write'))")
+        self.quarantined = store.check_stored() if store.completed_event_ids() else []
         done = store.completed_event_ids() & set(self._by_id)
         skipped_before = store.skipped_event_ids() & set(self._by_id)
         self._done: set[str] = set(done)
-        self._skipped: set[str] = set() if retry_skipped else set(skipped_before)
+        self._skipped: set[str] = set() if opts.retry_skipped else set(skipped_before)
         self._done_before = len(done)
         self._inflight: dict[str, CaptureEvent] = {}
         self._requeue: list[CaptureEvent] = []
         self._cursor = 0
-        self._pipe_failures: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+        self._pipe_failures: collections.defaultdict[str, collections.Counter[str]] = (
+            collections.defaultdict(collections.Counter))
 
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
         self._state = S.IDLE
         self._pause_reason: str | None = None
+        self._lens_wait: bool | None = None  # parked for the operator to cap (True) / uncap the lens
+        self._lens_on = False  # the operator confirmed the cap on (a real rig's; see darks)
         self._finishing = False
         self._error: BaseException | None = None
         self._error_text: str | None = None
         self._faults: list[FaultInfo] = []
-        self._cur: dict[str, Any] = {}
+        self._cur: dict[str, str | None] = {}
         self._last_event: CaptureEvent | None = None
         self._efficiency: float | None = None
         self._thread: threading.Thread | None = None
@@ -208,6 +193,7 @@ class Engine:
         self._lower_bound_s: float | None = None
         self._ended_at: float | None = None
         self._attempt = 1
+        self.rig_safe: bool | None = None  # set by teardown: lamps off and motion stopped at the end
 
     # ------------------------------------------------------------------ public API
     @property
@@ -215,34 +201,35 @@ class Engine:
         return self.store.session_id
 
     @property
+    def alive(self) -> bool:
+        """True while a run started with :meth:`start` is still going in its thread."""
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
     def state(self) -> RunState:
         with self._lock:
             return self._state
 
-    # Options held by the helpers that use them (one copy, still settable here).
-    @property
-    def qc(self) -> QcHook | None:
-        return self._frames.qc
-
-    @qc.setter
-    def qc(self, hook: QcHook | None) -> None:
-        self._frames.qc = hook
-
-    @property
-    def save_truth(self) -> bool:
-        return self._frames.save_truth
-
-    @save_truth.setter
-    def save_truth(self, on: bool) -> None:
-        self._frames.save_truth = on
-
-    @property
-    def snap_timeout_s(self) -> float:
-        return self._camera.snap_timeout_s
-
-    @snap_timeout_s.setter
-    def snap_timeout_s(self, seconds: float) -> None:
-        self._camera.snap_timeout_s = seconds
+    def _make_steps(self, opts: EngineOptions, qc: QcHook | None) -> CaptureSteps:
+        """The steps of the sweep's mode, with the helpers they share (the runner keeps the
+        frame stages: they are its pipeline's stages)."""
+        rig, store, sweep = self.rig, self.store, self.sweep
+        snap_timeout = rig.config.camera.timeout_s if opts.snap_timeout_s is None else opts.snap_timeout_s
+        camera = CameraControl(rig, snap_timeout)
+        hooks = RunHooks(submit=self._submit, dark_stored=self._dark_stored, condition=self._condition,
+                         should_stop=lambda: self.state is not S.RUNNING)
+        self._frames = FrameStages(rig, store, sweep, self.ops, qc=qc,
+                                   save_truth=opts.save_truth and rig.simulated,
+                                   processor_factory=opts.processor_factory, version=self._version)
+        kit = CaptureKit(
+            rig=rig, store=store, sweep=sweep, ops=self.ops, camera=camera,
+            exposure=ExposureMeter(sweep, store, camera, rig.config.camera.model),
+            darks=SessionDarks(rig, store, sweep, self.ops, camera, hooks.dark_stored, self._operator_lens),
+            frames=self._frames, hooks=hooks,
+        )
+        if sweep.mode == "continuous":
+            return ContinuousSteps(kit, opts.continuous)
+        return StopAndGoSteps(kit)
 
     def subscribe(self, callback: Callable[[EngineEvent], None]) -> Callable[[], None]:
         """Call ``callback(event)`` for every engine event (in the engine thread); returns unsubscribe."""
@@ -257,10 +244,32 @@ class Engine:
         self._request(S.PAUSING, "pause", reason="operator")
 
     def resume(self) -> None:
-        """Continue a paused run (also clears a suspension, e.g. after freeing disk space)."""
-        self._request(S.RUNNING, "resume")
+        """Continue a paused run (also clears a suspension, e.g. after freeing disk space);
+        not one waiting for the lens cap (that needs :meth:`confirm_lens`)."""
+        with self._lock:
+            if self._state is S.PAUSED and self._lens_wait is not None:
+                raise IllegalTransition(self._state, S.RUNNING, f"resume ({self._pause_reason}; the "
+                                        "operator confirms it with confirm_lens / POST /sessions/{id}/lens)")
+            self._request(S.RUNNING, "resume")
 
-    clear = resume
+    @property
+    def lens_wait(self) -> bool | None:
+        """While parked for the operator: True waiting for the lens cap on, False for it off."""
+        with self._lock:
+            return self._lens_wait if self._state is S.PAUSED else None
+
+    def confirm_lens(self, capped: bool) -> None:
+        """The operator says the lens cap is on (``capped``) or off: continues a run parked for
+        exactly that (IllegalTransition otherwise). Trusted: a real rig cannot check it."""
+        with self._lock:
+            if self._state is not S.PAUSED or self._lens_wait is not capped:
+                want = ("nothing" if self._state is not S.PAUSED or self._lens_wait is None
+                        else f"the lens cap {'on' if self._lens_wait else 'off'}")
+                what = f"confirm the lens cap {'on' if capped else 'off'} (waiting for {want})"
+                raise IllegalTransition(self._state, S.RUNNING, what)
+            self._lens_on = capped
+            self._set_state(S.RUNNING, "lens confirmed")
+            self._cond.notify_all()
 
     def abort(self) -> None:
         """End the run at the next safe boundary; the session is marked ``aborted``."""
@@ -351,20 +360,6 @@ class Engine:
     def pipeline_stats(self) -> PipelineStats:
         return self._pipeline.stats()
 
-    @classmethod
-    def resume_session(cls, rig: Rig, root: str | Path, session_id: str, *, allow_rig_change: bool = False,
-                       **kwargs: Any) -> Engine:
-        """Reopen a session and build an engine that captures only what is not stored yet."""
-        store = SessionStore.open(root, session_id, clock=rig.clock)
-        if store.rig_digest != rig.config.digest and not allow_rig_change:
-            store.close()
-            raise UsageError(
-                f"session {session_id} was captured with a different rig configuration "
-                f"(digest {store.rig_digest[:12]}…, this rig {rig.config.digest[:12]}…); "
-                "pass allow_rig_change to resume anyway"
-            )
-        return cls(rig, store, store.sweep, **kwargs)
-
     # ------------------------------------------------------------------ control internals
     def _request(self, target: RunState, action: str, reason: str | None = None) -> None:
         with self._lock:
@@ -438,12 +433,17 @@ class Engine:
     # ------------------------------------------------------------------ run phases
     def _setup(self) -> None:
         pending = [e for e in self.events if e.event_id not in self._done and e.event_id not in self._skipped]
-        if self.check_disk and pending:
+        if self.options.check_disk and pending:
             total = estimate_session_bytes(self.sweep, self.rig.config)
             need = int(total * len(pending) / max(1, len(self.events)))
-            check_free_space(self.store.path, need)
-        self._exposure.restore()
-        self.rig.mount(self.sweep.satellite, self.sweep.build)
+            while True:  # too little disk to start: paused and resumable (exit 3), not failed
+                try:
+                    check_free_space(self.store.path, need)
+                    break
+                except DiskFull as exc:
+                    self._note_fault(exc, "suspend", None)
+                    self._park(reason=f"disk_full: {exc}")
+        self.steps.setup()  # restores what an earlier run learnt, mounts the scene (once per run)
         with self._lock:
             self._eta_basis = None
             self._eta()
@@ -479,8 +479,7 @@ class Engine:
     def _teardown(self, error: BaseException | None) -> EngineStatus:
         """Safe state first, then the captured frames to disk, then the session record."""
         report = self.ops.make_safe()
-        with contextlib.suppress(Exception):
-            self.rig.camera.stop_stream()
+        self.steps.teardown()
         for exc in report.errors:
             self._note_fault(exc, "teardown", None)
         unsafe: str | None = None
@@ -506,22 +505,22 @@ class Engine:
             self._finishing = True
             self._ended_at = self.clock.monotonic()
             if error is not None:
-                final = S.FAILED
                 self._error = error
                 self._error_text = f"{type(error).__name__}: {error}"
                 if unsafe and unsafe not in self._error_text:
                     self._error_text += f" ({unsafe})"
-            elif self._state is S.ABORTING:
-                final = S.ABORTED
-            else:
-                final = S.COMPLETED
-        self._efficiency = self._compute_efficiency() if final is S.COMPLETED else None
+            final = self._final_state(error)
+        ended = final in (S.COMPLETED, S.COMPLETED_WITH_GAPS)
+        self._efficiency = self._compute_efficiency() if ended else None
         summary = self._summary(final)
+        summary["rig_safe"] = report.safe  # the rig's outcome, apart from the data's (state)
+        self.rig_safe = report.safe
         try:
             self.store.record_event("run_finished", summary)
-            if final is S.COMPLETED:
-                self.store.complete("completed")
+            if ended:
+                self.store.complete(final.value)
             else:
+                self.store.manifest(final.value)  # what is stored, whatever ended the run
                 self.store.set_state(final.value)
         except BaseException as exc:
             log.error("could not record the end of session %s: %s", self.session_id, exc)
@@ -529,6 +528,8 @@ class Engine:
                 final = S.FAILED
                 self._error = exc
                 self._error_text = f"{type(exc).__name__}: {exc}"
+            with contextlib.suppress(Exception):  # e.g. a stored file failed the final check
+                self.store.set_state(S.FAILED.value)
         with self._lock:
             self._set_state(final, "finish", reason=self._error_text)
             status = self.status()
@@ -538,17 +539,33 @@ class Engine:
         self.bus.close()
         return status
 
+    def _final_state(self, error: BaseException | None) -> RunState:
+        """The state a run ends in (caller holds the lock): ``failed`` on an error (including a
+        rig left unsafe, or no frame stored at all), ``aborted`` when asked to,
+        ``completed_with_gaps`` when planned events are missing (each skip recorded), else
+        ``completed``."""
+        if error is not None:
+            return S.FAILED
+        if self._state is S.ABORTING:
+            return S.ABORTED
+        frames = {e.event_id for e in self.events if e.kind == "frame"}
+        if frames and not frames & self._done:  # every frame given up: nothing useful stored
+            self._error_text = (f"no frame stored: all {len(frames)} planned frame(s) were skipped "
+                                f"({len(self._faults)} fault(s); see the journal's skips)")
+            self._error = RuntimeError(self._error_text)
+            return S.FAILED
+        if {e.event_id for e in self.events} - self._done:
+            return S.COMPLETED_WITH_GAPS  # each gap recorded with its reason; a resume retries them
+        return S.COMPLETED
+
     def _compute_efficiency(self) -> float | None:
         """Plan lower bound / active duration (engine clock). For a resumed or gappy run the
         bound covers only the events stored in this run (stop-and-go model)."""
         elapsed = self._elapsed()
-        if elapsed <= 0:
+        if elapsed <= 0 or not self._stored_this_run:  # e.g. a resumed run with nothing left to do
             return None
         if self._stored_this_run >= set(self._by_id):
-            if self.sweep.mode == "continuous":
-                lower = self._speed_settings().estimate(self.sweep, self.rig.config).lower_bound_s
-            else:
-                lower = estimate(self.events, self.rig.config).lower_bound_s
+            lower = self.steps.lower_bound_s()
         else:
             ran = [e for e in self.events if e.event_id in self._stored_this_run]
             lower = estimate(ran, self.rig.config).lower_bound_s
@@ -573,15 +590,12 @@ class Engine:
                 "blocked_count": st.blocked_count, "process_s": st.process_s, "store_s": st.store_s,
             },
         }
-        if self._passes.blur_deg:
-            out["blur_deg"] = {"mean": float(np.mean(self._passes.blur_deg)),
-                               "max": float(np.max(self._passes.blur_deg))}
-            out["passes"] = self._passes.passes
-        if self._exposure.results:
-            out["auto_exposure"] = {c: r.exposure_s for c, r in self._exposure.results.items()}
-        qc_summary = getattr(self.qc, "summary", None)
-        if callable(qc_summary):  # the QC hook keeps the distribution of its scores
-            out["qc"] = qc_summary()
+        out.update(self.steps.summary())
+        if self._lens_on:  # a real rig's run ended between the operator's cap and uncap
+            log.warning("session %s ended with the lens cap on (as last confirmed)", self.session_id)
+            out["lens_cap_on"] = True
+        if isinstance(self.qc, SummarisingQc):  # the QC hook keeps the distribution of its scores
+            out["qc"] = self.qc.summary()
         return out
 
     # ------------------------------------------------------------------ scheduling
@@ -600,17 +614,18 @@ class Engine:
                         break
             if first is None:
                 return []
-            if self.sweep.mode != "continuous" or first.kind != "frame":
+            key = self.steps.unit_key(first)
+            if key is None:
                 return [first]
-            # Continuous: the whole pass that this event belongs to, whatever is still to do.
+            # Events the steps capture together (a continuous pass): whatever is still to do of it.
             unit = [first]
             for ev in list(self._requeue):
-                if ev.kind == "frame" and ev.pass_index == first.pass_index:
+                if self.steps.unit_key(ev) == key:
                     unit.append(ev)
                     self._requeue.remove(ev)
             while self._cursor < len(self.events):
                 ev = self.events[self._cursor]
-                if ev.kind != "frame" or ev.pass_index != first.pass_index:
+                if self.steps.unit_key(ev) != key:
                     break
                 self._cursor += 1
                 if self._is_pending(ev):
@@ -636,12 +651,14 @@ class Engine:
             if self._state is S.ABORTING:
                 raise _AbortRequested
 
-    def _park(self, reason: str | None = None) -> None:
-        """Go to ``paused`` (lamps off, motion stopped) and wait for resume or abort."""
+    def _park(self, reason: str | None = None, lens: bool | None = None) -> None:
+        """Go to ``paused`` (lamps off, motion stopped) and wait for resume or abort (or, with
+        ``lens``, for :meth:`confirm_lens`)."""
         with self._lock:
             if self._state is S.RUNNING:
                 self._set_state(S.PAUSING, "suspend", reason)
                 self._pause_reason = reason
+                self._lens_wait = lens
             elif self._state is S.ABORTING:
                 raise _AbortRequested
         self._pipeline.drain()
@@ -651,7 +668,7 @@ class Engine:
             self._note_fault(exc, "teardown", None)
         if not report.safe:
             raise RuntimeError("cannot park the rig safely: " + "; ".join(str(e) for e in report.errors[-3:]))
-        self._camera.forget()
+        self.steps.forget()
         with contextlib.suppress(Exception):
             self.store.set_state("paused")
         with self._lock:
@@ -660,6 +677,7 @@ class Engine:
                 self._stats.paused_at = self.clock.monotonic()
             while self._state is S.PAUSED:
                 self._cond.wait()
+            self._lens_wait = None
             if self._stats.paused_at is not None:
                 self._stats.paused_s += self.clock.monotonic() - self._stats.paused_at
                 self._stats.paused_at = None
@@ -671,13 +689,23 @@ class Engine:
             self.store.set_state("running")
         self.store.record_event("resumed", {"clock_s": self.clock.monotonic()})
 
+    def _operator_lens(self, capped: bool) -> None:
+        """A real rig's lens cap: park until the operator confirms it on (``capped``) or off.
+        A no-op when it is so already (for a simulated rig it is always off here)."""
+        if self._lens_on is capped:
+            return
+        while self._lens_on is not capped:  # an operator's own pause first: then the lens
+            self._park(reason=lens_reason(capped), lens=capped)
+        self.store.record_event("lens", {"capped": capped, "confirmed_by": "operator",
+                                         "clock_s": self.clock.monotonic()})
+
     # ------------------------------------------------------------------ faults
     def _note_fault(self, exc: BaseException, action: str, ev: CaptureEvent | None,
                     attempt: int = 1) -> FaultInfo:
         info = FaultInfo(
             time_s=self.clock.monotonic(), fault_class=fault_class_of(exc), action=action,
             message=f"{type(exc).__name__}: {exc}", event_id=ev.event_id if ev else None, attempt=attempt,
-            device=getattr(exc, "device", None),
+            device=device_of(exc),
         )
         with self._lock:
             self._faults.append(info)
@@ -695,19 +723,23 @@ class Engine:
 
     def _execute(self, unit: list[CaptureEvent]) -> None:
         """Capture one unit (an event, or a continuous pass) under the fault policy."""
-        failures: collections.Counter = collections.Counter()
+        failures: collections.Counter[str] = collections.Counter()
         while True:
             todo = [e for e in unit if self._is_pending(e)]
             if not todo:
                 return
             self._stop_if_aborting()
             try:
+                if todo[0].kind != "dark":
+                    self._operator_lens(False)  # a real rig's cap off (confirmed) before lit frames
                 self._attempt = sum(failures.values()) + 1
-                self._capture(todo)
+                self.steps.execute(todo, self._attempt)
                 # A pass cut short by a pause leaves marks to do: back in the queue.
                 with self._lock:
                     self._requeue.extend(e for e in todo if self._is_pending(e) and e not in self._requeue)
                 return
+            except LensCycled:
+                continue  # a dark taken mid-unit: the unit again, lamps and pose re-commanded
             except Exception as exc:
                 err: Exception = exc
             # Faults: loop while the policy's recovery itself fails.
@@ -720,17 +752,15 @@ class Engine:
                     action = ("home+" if decision.home else "") + action
                 self._note_fault(err, action, todo[0], failures[fc])
                 self._forget_after(err)
-                with contextlib.suppress(Exception):
-                    self.rig.camera.stop_stream()
                 # An abort (e.g. an emergency stop that caused this very fault) wins over any
                 # recovery: never re-home, move or relight after it was asked for.
                 self._stop_if_aborting()
                 if decision.retries:
                     try:
                         if decision.reconnect:
-                            self.ops.reconnect(getattr(err, "device", None))
+                            self.ops.reconnect(device_of(err))
                         if decision.home:
-                            self.ops.home(getattr(err, "device", None))
+                            self.ops.home(device_of(err))
                         self.clock.sleep(decision.delay_s)
                     except Exception as rexc:
                         err = rexc
@@ -749,11 +779,11 @@ class Engine:
     def _forget_after(self, err: BaseException) -> None:
         """After a fault, stop trusting what we know about the device that failed (all of
         them if it is not known): its state is re-commanded and re-verified next time."""
-        roles = {r for r, _ in self.ops.devices_named(getattr(err, "device", None))}
+        roles = self.ops.roles_named(device_of(err))
         known = bool(roles)
         self.ops.invalidate(lamps=not known or "lights" in roles,
                             pose=not known or bool(roles & {"turntable", "tilt"}))
-        self._camera.forget()
+        self.steps.recover()  # the camera's setting re-commanded, any stream stopped
 
     def _skip(self, ev: CaptureEvent, err: BaseException, fc: str) -> None:
         reason = f"{type(err).__name__}: {err}"
@@ -814,15 +844,6 @@ class Engine:
                       eta_s=s.eta_s, elapsed_s=s.elapsed_s)
 
     # ------------------------------------------------------------------ captures
-    def _capture(self, todo: list[CaptureEvent]) -> None:
-        first = todo[0]
-        if first.kind == "dark":
-            self._darks.capture(first)
-        elif self.sweep.mode == "continuous":
-            self._passes.capture(todo, self._speed_settings(), self._attempt)
-        else:
-            self._capture_frame(first)
-
     def _dark_stored(self, ev: CaptureEvent) -> None:
         if ev.event_id in self._by_id:  # a planned dark (not one taken for auto exposure or drift)
             with self._lock:
@@ -831,33 +852,12 @@ class Engine:
                 self._last_event = ev
             self._publish_progress()
 
-    def _speed_settings(self) -> SpeedSettings:
-        return SpeedSettings(self.speed_dps, self.max_blur_px, self.max_angle_error_deg, self.radius_px)
-
-    def _set_condition(self, ev: CaptureEvent) -> None:
-        assert ev.lighting is not None
+    def _condition(self, ev: CaptureEvent) -> None:
         with self._lock:
             self._cur.update(lighting=ev.lighting, elevation=ev.elevation)
-        self.ops.set_lamps(frozenset(self.rig.config.lamp_channels(ev.lighting)))
 
-    def _capture_frame(self, ev: CaptureEvent) -> None:
-        assert ev.azimuth_deg is not None and ev.tilt_deg is not None
-        self._set_condition(ev)
-        moved = self.ops.move_pose(ev.azimuth_deg, ev.tilt_deg)
-        self.ops.wait_ready(self.clock.monotonic() + self.ops.settle_s(moved, ev.settle_s))
-        exposure, auto = self._exposure.exposure(ev)
-        dark = self._darks.for_setting(exposure, ev.gain)
-        self._camera.configure(exposure, ev.gain)
-        t_clock, t_wall = self.clock.monotonic(), self.clock.wall()
-        frame = self._camera.snap(exposure)
-        truth = self._frames.truth()
-        dark = self._darks.check_temperature(dark, exposure, ev.gain, frame.temperature_c)
-        meta = self._frames.meta(ev, frame, exposure, dark, t_clock, t_wall, self._attempt)
-        if auto is not None:
-            meta["auto_exposure"] = auto.to_dict()
-        self._submit(ev, frame.data, meta, dark, truth)
-
-    def _submit(self, ev: CaptureEvent, data: np.ndarray, meta: dict, dark: Dark | None, truth: Any) -> None:
+    def _submit(self, ev: CaptureEvent, data: np.ndarray, meta: dict[str, Any], dark: Dark | None,
+                truth: Any) -> None:
         processor = self._frames.processor(dark)
         with self._lock:
             self._inflight[ev.event_id] = ev

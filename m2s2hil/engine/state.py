@@ -52,12 +52,13 @@ class RunState(enum.StrEnum):
     PAUSED = "paused"
     ABORTING = "aborting"
     COMPLETED = "completed"
+    COMPLETED_WITH_GAPS = "completed_with_gaps"  # ran to the end; some planned frames skipped
     FAILED = "failed"
     ABORTED = "aborted"
 
     @property
     def terminal(self) -> bool:
-        return self in (RunState.COMPLETED, RunState.FAILED, RunState.ABORTED)
+        return self in (RunState.COMPLETED, RunState.COMPLETED_WITH_GAPS, RunState.FAILED, RunState.ABORTED)
 
     @property
     def active(self) -> bool:
@@ -68,11 +69,12 @@ class RunState(enum.StrEnum):
 S = RunState
 TRANSITIONS: dict[RunState, frozenset[RunState]] = {
     S.IDLE: frozenset({S.RUNNING, S.FAILED}),
-    S.RUNNING: frozenset({S.PAUSING, S.ABORTING, S.COMPLETED, S.FAILED}),
+    S.RUNNING: frozenset({S.PAUSING, S.ABORTING, S.COMPLETED, S.COMPLETED_WITH_GAPS, S.FAILED}),
     S.PAUSING: frozenset({S.PAUSED, S.ABORTING, S.FAILED}),
     S.PAUSED: frozenset({S.RUNNING, S.ABORTING, S.FAILED}),
     S.ABORTING: frozenset({S.ABORTED, S.FAILED}),
     S.COMPLETED: frozenset(),
+    S.COMPLETED_WITH_GAPS: frozenset(),
     S.FAILED: frozenset(),
     S.ABORTED: frozenset(),
 }

@@ -158,7 +158,7 @@ class StabilityRow:
     note: str = ""
 
 
-def stability_study(
+def demosaic_stability_study(
     camera, base: Scene, star: Scene, star2: Scene, methods: Sequence[str] = METHODS, *, seed: int = 0
 ) -> list[StabilityRow]:
     """Each method on a clean scene, saturation, very low light, fine stars and a 1-px phase error."""

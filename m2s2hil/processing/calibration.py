@@ -175,9 +175,11 @@ def load_calibration(path: str | Path, camera=None) -> CameraCalibration:
 
 
 def save_calibration(
-    path: str | Path, calib: CameraCalibration, *, bands_nm: list[float] | None = None
+    path: str | Path, calib: CameraCalibration, *, bands_nm: list[float] | None = None,
+    provenance: dict | None = None,
 ) -> Path:
-    """Write ``calib`` as ``path`` (JSON) plus ``<stem>_white.tiff``; both written atomically."""
+    """Write ``calib`` as ``path`` (JSON) plus ``<stem>_white.tiff``; both written atomically.
+    ``provenance``: how the white reference was captured (recorded beside it)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     doc: dict = {"format": FORMAT}
@@ -202,6 +204,8 @@ def save_calibration(
             "reflectance": [float(v) for v in np.atleast_1d(refl)],
             "sha256": hashlib.sha256(bio.getvalue()).hexdigest(),
         }
+        if provenance is not None:
+            doc["white_reference"]["provenance"] = provenance
     write_bytes_atomic(p, json.dumps(doc, indent=2).encode())
     return p
 

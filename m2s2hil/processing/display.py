@@ -75,5 +75,5 @@ def _percentile_of_sample(arr: np.ndarray, q: float) -> float:
     sample = arr[::4, ::4].ravel() if arr.ndim >= 2 else arr.ravel()
     if sample.size == 0:
         return 0.0
-    k = int(round(q / 100.0 * (sample.size - 1)))
+    k = round(q / 100.0 * (sample.size - 1))
     return float(np.partition(sample, k)[k])

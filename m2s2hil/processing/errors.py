@@ -7,7 +7,7 @@ are also ``UsageError`` so the CLI exits with code 2.
 
 from __future__ import annotations
 
-from m2s2hil.errors import M2S2Error, UsageError
+from m2s2hil.errors import KeyedError, M2S2Error, UsageError
 
 
 class ProcessingError(M2S2Error):
@@ -47,12 +47,5 @@ class LayoutError(ProcessingError, UsageError):
     """An MSFA layout that is malformed or that a method refuses."""
 
 
-class CalibrationError(ProcessingError, UsageError):
+class CalibrationError(ProcessingError, KeyedError):
     """A camera calibration file that cannot be used; ``source`` names the file, ``key`` the entry."""
-
-    def __init__(self, source: str, key: str, problem: str) -> None:
-        self.source = source
-        self.key = key
-        self.problem = problem
-        where = f"{source}: {key}" if key else source
-        super().__init__(f"{where}: {problem}")

@@ -13,20 +13,37 @@
   responses (centre and FWHM from the camera model), scaled so the scene's maximum is 90 % of
   full scale. The cube is noise-free radiance in DN; ``mosaic_of`` samples and quantises it.
 - Stress scenes for the stability study: a Siemens star of one material (any spectral angle in
-  the output is a demosaicing artefact), a two-material star (spectral edges), a zone plate.
+  the output is a demosaicing artefact) and a two-material star (spectral edges).
 """
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from m2s2hil.processing.errors import ProcessingError
 from m2s2hil.processing.mosaic import MosaicLayout, sample_cube
+
+if TYPE_CHECKING:
+    from m2s2hil.config import RigConfig
 
 WAVELENGTHS = np.arange(340.0, 961.0, 1.0)  # nm; covers every band ± 2.5 FWHM
 EARTHLIB_CLASSES = ("paint", "metal", "canopy", "soil", "tile", "bark", "glass", "asphalt")
+
+
+def _analysis_extra(module: str) -> Any:
+    """colour-science and earthlib come with the ``analysis`` extra, not with a capture install."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise ProcessingError(
+            f"the ground-truth scenes need {module!r}, which is not installed: "
+            "pip install 'm2s2hil[analysis]'"
+        ) from None
 
 
 @dataclass
@@ -45,7 +62,7 @@ def band_responses(model, wl: np.ndarray = WAVELENGTHS) -> np.ndarray:
 
 
 def blackbody(wl: np.ndarray = WAVELENGTHS, temperature_k: float = 3000.0) -> np.ndarray:
-    import colour
+    colour = _analysis_extra("colour")
 
     shape = colour.SpectralShape(float(wl[0]), float(wl[-1]), float(wl[1] - wl[0]))
     spd = colour.sd_blackbody(temperature_k, shape).values
@@ -57,7 +74,7 @@ def colorchecker_spectra(
     wl_key: tuple[float, float, float] = (340.0, 960.0, 1.0),
 ) -> tuple[np.ndarray, list[str]]:
     """(24, λ) reflectances of the ColorChecker (N. Ohta), held constant outside 380–780 nm."""
-    import colour
+    colour = _analysis_extra("colour")
 
     wl = np.arange(wl_key[0], wl_key[1] + 1e-9, wl_key[2])
     sds = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
@@ -69,7 +86,7 @@ def colorchecker_spectra(
 @lru_cache(maxsize=1)
 def earthlib_spectra(classes: tuple[str, ...] = EARTHLIB_CLASSES) -> tuple[np.ndarray, list[str]]:
     """(K, λ) one measured reflectance per earthlib class, resampled to ``WAVELENGTHS``."""
-    import earthlib
+    earthlib = _analysis_extra("earthlib")
 
     lib = earthlib.full_library
     wl_lib = np.asarray(lib.sensor.band_centers, dtype=np.float64) * 1000.0  # µm → nm
@@ -90,7 +107,7 @@ def earthlib_spectra(classes: tuple[str, ...] = EARTHLIB_CLASSES) -> tuple[np.nd
 
 def spectra_srgb(refl: np.ndarray, wl: np.ndarray = WAVELENGTHS) -> np.ndarray:
     """(K, 3) linear sRGB of reflectances under D65 (the ColorChecker patches' own colours)."""
-    import colour
+    colour = _analysis_extra("colour")
 
     rgb = []
     for r in refl:
@@ -191,27 +208,26 @@ def simulator_scene(
     tilt_deg: float = 0.0,
     size: int = 512,
     seed: int = 1,
+    rig: RigConfig | None = None,
 ) -> Scene:
     """The simulated TOUCAN's noise-free radiance (``SimFrameSource.truth().radiance()``) of a mockup
-    under all lamps, rescaled to 90 % of full scale at its maximum (as a shorter exposure would)."""
-    from m2s2hil.catalog import load_catalog
+    under every lamp of ``rig`` (default: the built-in rig), rescaled to 90 % of full scale at its
+    maximum (as a shorter exposure would)."""
+    from m2s2hil.config import default_rig
+    from m2s2hil.sim_config import build_frame_source, build_world
     from m2s2hil.simulators.clock import VirtualClock
-    from m2s2hil.simulators.frames import SimFrameSource
-    from m2s2hil.simulators.world import LampInfo, World
 
+    rig = rig or default_rig()
     cam = model.model_copy(update={"width": size, "height": size})
-    lamps = {i: LampInfo(f"bar{i + 1}", "led_bar", 1.0) for i in range(5)}
-    lamps[5] = LampInfo("spot", "spotlight", 2.0)
     clock = VirtualClock()
-    world = World(clock, lamp_info=lamps)
-    world.satellite, world.build = satellite, build
+    world = build_world(rig, clock)
+    world.mount(satellite, build)
     world.attach_axis("turntable", lambda: azimuth_deg)
     world.attach_axis("tilt", lambda: tilt_deg)
-    for ch in lamps:
-        world.set_lamp(ch, True)
-    clock.advance(10.0)  # past every lamp's warm-up
-    catalog = load_catalog()
-    src = SimFrameSource(world, cam, lambda s, b: catalog.build(s, b).materials, seed=seed)
+    for lamp in rig.lamps.values():
+        world.set_lamp(lamp.channel, True)
+    clock.advance(max((lamp.warmup_s for lamp in rig.lamps.values()), default=0.0) + 1.0)  # past warm-up
+    src = build_frame_source(rig, world, seed=seed, model=cam)
     src.capture(0.01, 1.0)
     cube = np.array(src.truth().radiance(), dtype=np.float32)
     return Scene(
@@ -260,16 +276,6 @@ def siemens_star(model, size: int = 256, spokes: int = 48, *, two_materials: boo
     return Scene(
         f"star/{label}", _to_dn(cube, model.full_scale), f"{label} Siemens star, {spokes} spokes, {size}²"
     )
-
-
-def zone_plate(model, size: int = 256, k_max: float = 0.5) -> Scene:
-    """cos(π·k(r)·r) with spatial frequency rising linearly to ``k_max`` cycles/pixel at the edge."""
-    yy, xx = np.mgrid[0:size, 0:size] - (size - 1) / 2.0
-    r2 = xx**2 + yy**2
-    pattern = 0.5 + 0.5 * np.cos(np.pi * k_max * r2 / (size / 2.0))
-    a = _material_bands(model, 0)
-    cube = a[:, None, None] * (0.15 + 0.85 * pattern)
-    return Scene("zone-plate", _to_dn(cube, model.full_scale), f"zone plate to {k_max} cycles/px, {size}²")
 
 
 def mosaic_of(

@@ -4,6 +4,11 @@ Every device gets its driver; every device whose port is ``sim://NAME`` also get
 in-process simulator registered under NAME, all sharing one simulated world. A rig
 whose devices are all simulated runs on a virtual clock unless ``realtime`` is asked
 for; a rig with any real device runs in real time.
+
+Axes follow their homing policy (``homing`` in the rig file): only axes with switches are
+homed; an axis without switches must stand in its recorded origin (m2s2hil/rig/origin.py).
+A device that cannot be opened raises :class:`~m2s2hil.rig.open_errors.RigOpenError`: one
+line naming the device, the port and the cause, with a hint and an exit code.
 """
 
 from __future__ import annotations
@@ -14,12 +19,13 @@ import urllib.parse
 from types import MappingProxyType
 from typing import Any
 
-from m2s2hil.catalog import load_catalog
 from m2s2hil.config import AxisConfig, DeviceConfig, RigConfig, default_rig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
-from m2s2hil.errors import ConfigError
 from m2s2hil.drivers.interfaces import ContinuousRotation
+from m2s2hil.errors import ConfigError
+from m2s2hil.rig.open_errors import opening
 from m2s2hil.rig.opened import AXIS_ROLES, DeviceLink, Rig, link_for
+from m2s2hil.rig.origin import establish_origins
 
 log = logging.getLogger(__name__)
 
@@ -47,69 +53,39 @@ def build_simulators(
     otherwise every device is (``m2s2hil sim serve``).
     """
     import m2s2hil.simulators  # noqa: F401  (registers sim:// with pyserial)
+    from m2s2hil.sim_config import build_frame_source, build_world, camera_sim_name, fault_plans
     from m2s2hil.simulators import registry
-    from m2s2hil.simulators.fault_injection import FaultPlan
-    from m2s2hil.simulators.world import LampInfo, World
 
-    sim_cfg = dict(config.simulation)
-    fault_cfg: dict[str, list[dict]] = {k: list(v) for k, v in dict(sim_cfg.get("faults", {})).items()}
-    for k, v in (faults or {}).items():
-        fault_cfg.setdefault(k, []).extend(v)
-
-    def plan(name: str) -> FaultPlan:
-        try:
-            return FaultPlan.from_config(fault_cfg.get(name, []))
-        except (ValueError, TypeError) as exc:
-            raise ConfigError("rig", f"simulation.faults.{name}", str(exc)) from None
-
-    world = World(
-        clock,
-        lamp_info={
-            lamp.channel: LampInfo(name=name, kind=lamp.kind, warmup_s=lamp.warmup_s)
-            for name, lamp in config.lamps.items()
-        },
-        spot_angle_deg=float(sim_cfg.get("spot_angle_deg", 45.0)),
-        sensor_temperature_c=float(sim_cfg.get("sensor_temperature_c", 35.0)),
-    )
+    plans = fault_plans(config, faults, seed=seed)
+    world = build_world(config, clock)
     sims: dict[str, Any] = {}
     for name, dev in config.devices.items():
         reg = _sim_name(dev.port)
         if reg is None and only_sim_ports:
             continue
-        sim = _make_device_sim(name, dev, config, clock, world, plan(name))
+        sim = _make_device_sim(name, dev, config, clock, world, plans[name])
         sims[name] = sim
         if reg is not None:
             registry.register(reg, sim)
 
     frame_source = None
-    cam_reg = _sim_name(config.camera.port)
-    if cam_reg is not None or not only_sim_ports:
-        from m2s2hil.simulators.frames import SimFrameSource
+    if _sim_name(config.camera.port) is not None or not only_sim_ports:
         from m2s2hil.simulators.toucan import ToucanCamera
 
-        cat = load_catalog()
         model = config.camera.model
-        from m2s2hil.simulators.sensor import sensor_params_from
-
-        try:
-            sensor = sensor_params_from(dict(sim_cfg.get("sensor", {}))) if "sensor" in sim_cfg else None
-        except (KeyError, ValueError) as exc:
-            raise ConfigError("rig", "simulation.sensor", str(exc).strip("'\"")) from None
-        frame_source = SimFrameSource(
-            world, model, lambda sat, build: list(cat.build(sat, build).materials), seed=seed,
-            sensor_params=sensor,
-        )
-        sims[cam_reg or "toucan"] = ToucanCamera(
+        cam_name = camera_sim_name(config)
+        frame_source = build_frame_source(config, world, seed=seed)
+        sims[cam_name] = ToucanCamera(
             clock=clock,
             frame_source=frame_source,
             width=model.width,
             height=model.height,
             bit_depth=model.bit_depth,
-            faults=plan(cam_reg or "toucan"),
-            name=cam_reg or "toucan",
+            faults=plans[cam_name],
+            name=cam_name,
             max_fps=model.max_fps,
             temperature_c=lambda: world.sensor_temperature_c,
-            serial=str(sim_cfg.get("camera_serial", "TOUCAN-SIM-0001")),
+            serial=config.simulation.camera_serial,
         )
     return world, sims, frame_source
 
@@ -117,24 +93,15 @@ def build_simulators(
 def _make_device_sim(name: str, dev: DeviceConfig, config: RigConfig, clock: Any, world: Any, faults: Any):
     axes = _axes_of(config, name)
     if dev.protocol == "grbl":
-        from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+        from m2s2hil.simulators.grbl import grbl_sim_for
 
-        settings = {}
-        for ax in axes.values():
-            upd = ax.units_per_degree
-            settings[ax.axis.upper()] = GrblAxisSettings(
-                max_rate=ax.max_speed_dps * upd * 60.0,
-                accel=ax.accel_dps2 * upd,
-                max_travel=2.0 * max(abs(ax.min_deg), abs(ax.max_deg)) * upd,
-            )
-        sim = GrblSimulator(name, clock, axes=settings, faults=faults)
-        for role, ax in axes.items():
-            # Timed: the camera asks where the stage was during an exposure already over.
-            world.attach_axis(
-                role, lambda t, s=sim, a=ax: s.axis_position(a.axis.upper(), t) / a.units_per_degree,
-                timed=True,
-            )
-        return sim
+        try:
+            options = dict(config.simulation.device_options(name))
+            # A simulated controller has switches where the rig file's axes do, unless told otherwise.
+            options.setdefault("homing_switches", any(a.homing == "switches" for a in axes.values()))
+            return grbl_sim_for(name, axes, clock, world, faults, options)
+        except ValueError as exc:
+            raise ConfigError("rig", f"simulation.devices.{name}", str(exc)) from None
     if dev.protocol == "zaber":
         from m2s2hil.simulators.zaber import zaber_sim_for
 
@@ -159,7 +126,11 @@ def _open_axes(name: str, dev: DeviceConfig, config: RigConfig, clock: Clock) ->
             dev.port, device=name, baudrate=dev.baudrate, timeout_s=dev.timeout_s, clock=clock,
             retries=dev.retries,
         )
-        ctl.connect()
+        try:
+            ctl.connect()
+        except BaseException:
+            ctl.close()  # free the port before anyone (open_errors.identify_port) looks at it
+            raise
         out = {
             role: ctl.axis(
                 ax.axis, name=role, units_per_degree=ax.units_per_degree, min_deg=ax.min_deg,
@@ -195,7 +166,11 @@ def _open_lights(name: str, dev: DeviceConfig, clock: Clock) -> Any:
             dev.port, device=name, baudrate=dev.baudrate, timeout_s=dev.timeout_s, clock=clock,
             retries=dev.retries,
         )
-    board.connect()
+    try:
+        board.connect()
+    except BaseException:
+        board.close()
+        raise
     return board
 
 
@@ -242,14 +217,16 @@ def open_rig(
             if dev.protocol in ("grbl", "zaber"):
                 if not _axes_of(config, name):
                     continue
-                ctl, got = _open_axes(name, dev, config, clock)
+                with opening(name, dev.port, dev.protocol, dev.baudrate):
+                    ctl, got = _open_axes(name, dev, config, clock)
                 opened.append(ctl)
                 controllers[name] = ctl
                 axes.update(got)
                 roles = tuple(r for r in AXIS_ROLES if r in got)
                 links.append(link_for(name, roles, ctl, *(str(a.name) for a in got.values())))
             else:
-                lights = _open_lights(name, dev, clock)
+                with opening(name, dev.port, dev.protocol, dev.baudrate):
+                    lights = _open_lights(name, dev, clock)
                 opened.append(lights)
                 links.append(link_for(name, ("lights",), lights, lights.name))
         cam_cfg = config.camera
@@ -258,20 +235,22 @@ def open_rig(
             from m2s2hil.simulators.u3v_backend import SimUsbBackend
 
             toucan = sims[cam_reg]
-            camera = U3VCamera.open(
-                backend=SimUsbBackend(toucan), serial=toucan.serial, clock=clock,
-                timeout_s=cam_cfg.timeout_s, name="camera",
-            )
+            with opening("camera", cam_cfg.port, "u3v"):
+                camera = U3VCamera.open(
+                    backend=SimUsbBackend(toucan), serial=toucan.serial, clock=clock,
+                    timeout_s=cam_cfg.timeout_s, name="camera",
+                )
         else:
-            camera = U3VCamera.open(
-                vendor_id=cam_cfg.vendor_id, product_id=cam_cfg.product_id, serial=cam_cfg.serial,
-                clock=clock, timeout_s=cam_cfg.timeout_s, name="camera",
-            )
+            with opening("camera", cam_cfg.port, "u3v"):
+                camera = U3VCamera.open(
+                    vendor_id=cam_cfg.vendor_id, product_id=cam_cfg.product_id, serial=cam_cfg.serial,
+                    clock=clock, timeout_s=cam_cfg.timeout_s, name="camera",
+                )
         opened.append(camera)
         links.append(link_for(camera.name, ("camera",), camera))
         if home:
-            for ctl in controllers.values():
-                ctl.home()
+            _home_switched_axes(config, controllers, axes)
+        establish_origins(config, controllers, axes)  # axes without switches: a known origin or stop
         if lights is None:
             raise ConfigError("rig", "devices", "no relay board for the lamps")
         if frame_source is not None:
@@ -298,6 +277,22 @@ def open_rig(
             with contextlib.suppress(Exception):
                 dev.close()
         raise
+
+
+def _home_switched_axes(config: RigConfig, controllers: dict[str, Any], axes: dict[str, Any]) -> None:
+    """Home what has switches (``homing = "switches"``), nothing else: a factory GRBL answers
+    ``$H`` with error:5. A GRBL homes all its switched axes in one ``$H``; a Zaber axis by axis."""
+    for name, ctl in controllers.items():
+        switched = [role for role, ax in _axes_of(config, name).items() if ax.homing == "switches"]
+        if not switched:
+            continue
+        dev = config.devices[name]
+        with opening(name, dev.port, dev.protocol, dev.baudrate):
+            if dev.protocol == "grbl":
+                ctl.home()
+            else:
+                for role in switched:
+                    axes[role].home()
 
 
 def _mirror_into_world(

@@ -13,7 +13,7 @@ import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, TypeGuard
 
 from m2s2hil.config import RigConfig
 from m2s2hil.drivers.clock import Clock
@@ -35,8 +35,13 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+AxisRole = Literal["turntable", "tilt"]
 Role = Literal["turntable", "tilt", "lights", "camera"]
-AXIS_ROLES: tuple[Role, Role] = ("turntable", "tilt")
+AXIS_ROLES: tuple[AxisRole, AxisRole] = ("turntable", "tilt")
+
+
+def is_axis(role: Role) -> TypeGuard[AxisRole]:
+    return role in AXIS_ROLES
 
 
 @dataclass(frozen=True)
@@ -50,15 +55,22 @@ class DeviceLink:
     device: str
     roles: tuple[Role, ...]
     names: frozenset[str]
+    #: The driver that reopens the link: with ``reconnect()``, or else ``connect()``.
     reconnect: Reconnecting | Connecting | None = None
     alarm: AlarmClearing | None = None
     homing: Homing | None = None
+
+    @property
+    def axis_roles(self) -> tuple[AxisRole, ...]:
+        """The axes this link drives (a stage controller may drive both)."""
+        return tuple(r for r in self.roles if is_axis(r))
 
     def means(self, device: str | None) -> bool:
         return device is not None and (device == self.device or device in self.names)
 
     def do_reconnect(self) -> object:
-        """Reopen the link (``reconnect()`` where the driver has it, else ``connect()``)."""
+        """Reopen the link (``reconnect()`` where the driver has it, else ``connect()``; None
+        for a link that cannot be reopened). The type was checked when the rig opened."""
         if isinstance(self.reconnect, Reconnecting):
             return self.reconnect.reconnect()
         if self.reconnect is not None:
@@ -68,11 +80,7 @@ class DeviceLink:
 
 def link_for(device: str, roles: tuple[Role, ...], owner: object, *names: str) -> DeviceLink:
     """Record what ``owner`` (the object holding the connection) can do: checked here, once."""
-    reconnect: Reconnecting | Connecting | None = None
-    if isinstance(owner, Reconnecting):
-        reconnect = owner
-    elif isinstance(owner, Connecting):
-        reconnect = owner
+    reconnect = owner if isinstance(owner, (Reconnecting, Connecting)) else None
     return DeviceLink(
         device=device, roles=roles, names=frozenset({*roles, *names}), reconnect=reconnect,
         alarm=owner if isinstance(owner, AlarmClearing) else None,
@@ -101,16 +109,20 @@ class Rig:
     #: The camera's calibration when the rig file names one: the real mosaic layout,
     #: crosstalk matrix, white reference.
     calibration: CameraCalibration | None = None
-    #: Called to cap/uncap the lens for dark frames. A simulated rig caps its world's
-    #: lens; a real rig asks the operator (the CLI prompts, the API suspends).
+    #: Called to cap/uncap a simulated camera's lens instead of its world's (tests). A real
+    #: camera's cap is the operator's: a capture run parks and waits for them
+    #: (``lens_needs_operator``; :mod:`m2s2hil.engine.darks`).
     lens_cap_hook: Callable[[bool], None] | None = None
 
-    def axis(self, role: Role) -> RotaryAxis:
-        if role == "turntable":
-            return self.turntable
-        if role == "tilt":
-            return self.tilt
-        raise ValueError(f"{role!r} is not an axis")
+    @property
+    def lens_needs_operator(self) -> bool:
+        """True when the camera is not simulated in this process (no frame source here, as
+        :func:`~m2s2hil.rig.factory.open_rig` leaves it for a real camera): nothing here can
+        put its lens cap on or check that it is on."""
+        return self.frame_source is None
+
+    def axis(self, role: AxisRole) -> RotaryAxis:
+        return self.turntable if role == "turntable" else self.tilt
 
     def cap_lens(self, on: bool) -> None:
         if self.lens_cap_hook is not None:

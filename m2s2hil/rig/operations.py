@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 from m2s2hil.drivers.errors import MoveNotVerified
 from m2s2hil.drivers.interfaces import RestartReport, RotaryAxis
-from m2s2hil.rig.opened import AXIS_ROLES, DeviceLink, Rig, Role
+from m2s2hil.rig.opened import AXIS_ROLES, AxisRole, DeviceLink, Rig, Role
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class RigOps:
         self.lens_capped = False
 
     # -- state -----------------------------------------------------------------------
-    def axis(self, role: Role) -> RotaryAxis:
+    def axis(self, role: AxisRole) -> RotaryAxis:
         return self.rig.axis(role)
 
     def pose(self) -> dict[str, float | None]:
@@ -93,13 +93,8 @@ class RigOps:
         now = self.clock.monotonic()
         return {self._lamp_names.get(ch, f"ch{ch}"): now - t for ch, t in sorted(self._on_since.items())}
 
-    def lamps_off(self) -> None:
-        self.rig.lights.set(())
-        self._on_since.clear()
-        self._lit = frozenset()
-
     # -- motion ----------------------------------------------------------------------
-    def move(self, role: Role, target: float) -> bool:
+    def move(self, role: AxisRole, target: float) -> bool:
         """Move one axis to ``target`` and verify the read-back; False if it was there."""
         tol = self.rig.config.axes[role].tolerance_deg
         cur = self._pose[role]
@@ -117,12 +112,12 @@ class RigOps:
         self._moved_at = self.clock.monotonic()
         return True
 
-    def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[Role]:
+    def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[AxisRole]:
         """Tilt first (it changes rarely), then the turntable; returns the axes moved."""
-        order: tuple[tuple[Role, float], ...] = (("tilt", tilt_deg), ("turntable", azimuth_deg))
+        order: tuple[tuple[AxisRole, float], ...] = (("tilt", tilt_deg), ("turntable", azimuth_deg))
         return [r for r, t in order if self.move(r, t)]
 
-    def settle_s(self, moved: list[Role], override: float | None) -> float:
+    def settle_s(self, moved: list[AxisRole], override: float | None) -> float:
         if not moved:
             return 0.0
         if override is not None:
@@ -160,31 +155,42 @@ class RigOps:
                 continue
             report = link.do_reconnect()
             done.extend(link.roles)
-            if isinstance(report, RestartReport) and report.reset and set(link.roles) & set(AXIS_ROLES):
+            if isinstance(report, RestartReport) and report.reset and link.axis_roles:
                 rehome.append(link)
         self.invalidate()
         if rehome:
+            from m2s2hil.rig.origin import PositionLost
+
+            lost: list[str] = [r for link in rehome for r in link.axis_roles
+                               if self.rig.config.axes[r].homing != "switches"]
+            if lost:  # nothing can find their zero again: the operator must (never a silent $X)
+                raise PositionLost(rehome[0].device, lost)
             self.home(rehome[0].device)
         return done
 
-    def home(self, device: str | None) -> list[Role]:
+    def home(self, device: str | None) -> list[AxisRole]:
         """Clear an alarm and home the axes behind ``device`` (both if it is not an axis).
 
         A controller that can clear its alarm (GRBL: soft reset, then ``$H``) does that,
         once; otherwise each of its axes is homed.
         """
-        links = [link for link in self.links_named(device) if set(link.roles) & set(AXIS_ROLES)]
+        links = [link for link in self.links_named(device) if link.axis_roles]
         if not links:
-            links = [link for link in self.rig.links if set(link.roles) & set(AXIS_ROLES)]
-        roles: list[Role] = []
+            links = [link for link in self.rig.links if link.axis_roles]
+        roles: list[AxisRole] = []
         for link in links:
-            axis_roles = [r for r in link.roles if r in AXIS_ROLES]
+            axis_roles = link.axis_roles
             roles.extend(axis_roles)
+            switched = [r for r in axis_roles if self.rig.config.axes[r].homing == "switches"]
             if link.alarm is not None:
-                link.alarm.clear_alarm(home=True)
+                # Without switches: reset and unlock ($X), never $H (a factory GRBL answers error:5).
+                link.alarm.clear_alarm(home=bool(switched))
             else:
-                for r in axis_roles:
+                for r in switched:
                     self.rig.axis(r).home()
+            for r in axis_roles:
+                if r not in switched:
+                    self.rig.axis(r).position()  # re-read from the controller; the retried move verifies
         # Homing may move every axis on the controller: trust no remembered position.
         self._pose = dict.fromkeys(ROLES)
         return roles
@@ -213,4 +219,19 @@ class RigOps:
             self.invalidate()
             with contextlib.suppress(Exception):
                 self.clock.sleep(backoff_s * (2**i))
+            # A device whose port vanished stays unreachable until reopened: reopen it (no
+            # homing here, nothing may move) so the next attempt can switch it off or stop it.
+            for err in step_errors:
+                if getattr(err, "fault_class", None) == "device_gone":
+                    errors.extend(self._reopen(getattr(err, "device", None)))
         return SafeReport(False, errors, attempts)
+
+    def _reopen(self, device: str | None) -> list[Exception]:
+        """Reconnect the devices behind ``device`` for the safe state; the errors, never raised."""
+        out: list[Exception] = []
+        for link in self.links_named(device):
+            try:
+                link.do_reconnect()
+            except Exception as exc:
+                out.append(exc)
+        return out

@@ -27,10 +27,10 @@ class SimServer:
     """The simulators of a rig, each on its own pty. Use as a context manager."""
 
     def __init__(self, config: RigConfig | None = None, *, seed: int = 0) -> None:
-        from m2s2hil.simulators.clock import RealClock
+        from m2s2hil.drivers.clock import SystemClock
 
         self.config = config or load_rig(None)
-        self.clock = RealClock()
+        self.clock = SystemClock()
         self.world, self.sims, self.frame_source = build_simulators(
             self.config, self.clock, seed=seed, only_sim_ports=False
         )

@@ -148,7 +148,9 @@ def write_text_atomic(path: str | Path, text: str) -> Written:
 
 
 def remove_temp_files(folder: str | Path) -> list[Path]:
-    """Delete temporary files a crashed writer left behind (recursively)."""
+    """Delete temporary files a crashed writer left behind (recursively). Only a session's
+    owner, holding its lock (m2s2hil.store.owner_lock), may call this: anyone else could
+    delete a live writer's file between its write and its rename."""
     removed = []
     base = Path(folder)
     if not base.is_dir():

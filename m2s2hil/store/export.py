@@ -20,13 +20,17 @@ azimuth = start + k·step), plus ``n_azimuths · f`` for the f-th extra frame at
 the index (its 3,024 HIL images do not factor into 36 azimuths × 81 folders), so the
 CSV carries the azimuth explicitly.
 
-``layout="hf"`` writes ``out/train/<Satellite>_b<N>_e<N>_<light>_<k>.png`` (the lossless
-16-bit mosaic) with ``out/train/metadata.csv`` (``file_name`` + the same columns), which
-``datasets.load_dataset("imagefolder", data_dir=out)`` loads; exporting more sessions
-into the same folder merges their rows.
+``layout="hf"`` writes a ``datasets`` dataset (Parquet) whose ``raw`` column holds the
+exact 10-bit values as a uint16 array, with bands, FWHM and mosaic layout in every row
+(m2s2hil.store.export_hf); ``datasets.load_dataset(out, split="train")`` loads it;
+exporting more sessions into the same folder merges them.
+
+``layout="zarr"`` writes (or appends to) a Zarr store ``out`` that xarray opens lazily: raw
+frames chunked per frame with labelled coordinates (m2s2hil.store.zarr_export).
 
 Existing files are never overwritten unless ``overwrite=True`` (checked before anything
-is written). Every file is written atomically.
+is written). Every file is written atomically. Exporting only reads the session: nothing
+is recorded in it, so an archived read-only session exports.
 """
 
 from __future__ import annotations
@@ -43,11 +47,11 @@ import numpy as np
 from m2s2hil.catalog import load_catalog
 from m2s2hil.errors import UsageError
 from m2s2hil.store.atomic import write_bytes_atomic, write_text_atomic
-from m2s2hil.store.frame_files import decode_tiff, encode_png
+from m2s2hil.store.frame_files import encode_png
 from m2s2hil.store.session import FrameRecord, SessionStore
 
-Layout = Literal["m2s2", "hf"]
-LAYOUTS = ("m2s2", "hf")
+Layout = Literal["m2s2", "hf", "zarr"]
+LAYOUTS = ("m2s2", "hf", "zarr")
 
 CSV_COLUMNS = (
     "session_id", "event_id", "satellite", "build", "elevation", "lighting", "lighting_dataset", "k",
@@ -181,6 +185,14 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     frames = store.frames()
     if not frames:
         raise ExportError(f"session {store.session_id} has no frames to export")
+    if layout == "zarr":
+        from m2s2hil.store.zarr_export import ZarrExportError, export_zarr
+
+        try:
+            n = export_zarr(store, out)
+        except ZarrExportError as exc:
+            raise ExportError(str(exc)) from None
+        return ExportResult(layout=layout, out=out, images=n, files=[out])
     cat = load_catalog()
     sat_name = cat.satellites[store.sweep.satellite].name
     b = f"b{int(store.sweep.build[1:])}"
@@ -191,7 +203,23 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     def rel_name(r: dict) -> str:
         return f"{r['lighting_dataset']}_{r['k']}.png"
 
-    if layout == "m2s2":
+    meta_json = out / "metadata" / f"{store.session_id}.json"
+    dark_dir = out / "metadata" / store.session_id
+    darks = [(d, dark_dir / Path(d.files["master"].path).name) for d in store.darks()]
+    result = ExportResult(layout=layout, out=out)
+    if layout == "hf":
+        clash = [p for p in [meta_json, *(t for _, t in darks)] if p.exists()]
+        if clash and not overwrite:
+            raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
+                              "use overwrite to replace them")
+        from m2s2hil.store.export_hf import HfExportError, export_hf
+
+        try:
+            result.files += export_hf(store, out, frames, rows, overwrite=overwrite)
+        except HfExportError as exc:
+            raise ExportError(str(exc)) from None
+        result.images = len(frames)
+    else:
         targets: list[tuple[Path, Path]] = []
         for r in rows:
             sub = Path(sat_name) / b / f"e{int(r['elevation'][1:])}" / rel_name(r)
@@ -199,57 +227,25 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
             r["file"] = f"HIL/{sub.as_posix()}"
             r["file16"] = f"HIL16/{sub.as_posix()}"
         meta_csv = out / "metadata" / f"{store.session_id}.csv"
-        meta_json = out / "metadata" / f"{store.session_id}.json"
-        planned = [p for t in targets for p in t] + [meta_csv, meta_json]
-    else:
-        targets = []
-        for r in rows:
-            name = f"{sat_name}_{b}_e{int(r['elevation'][1:])}_{rel_name(r)}"
-            targets.append((out / "train" / name, out / "train" / name))
-            r["file_name"] = name
-        meta_csv = out / "train" / "metadata.csv"
-        meta_json = out / "metadata" / f"{store.session_id}.json"
-        planned = [t[0] for t in targets] + [meta_json]
-    if not overwrite:
-        clash = [p for p in planned if p.exists()]
-        if clash:
-            raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
-                              "use overwrite to replace them")
-
-    result = ExportResult(layout=layout, out=out)
-    for fr, (p8, p16) in zip(frames, targets, strict=True):
-        raw, _ = decode_tiff(store.read_file(fr.files["raw"]))
-        if layout == "m2s2":
+        planned = [p for t in targets for p in t] + [meta_csv, meta_json] + [t for _, t in darks]
+        if not overwrite:
+            clash = [p for p in planned if p.exists()]
+            if clash:
+                raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
+                                  "use overwrite to replace them")
+        for fr, (p8, p16) in zip(frames, targets, strict=True):
+            raw, _ = store.read_raw(fr.event_id)
             write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))
             write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
             result.files += [p8, p16]
-        else:
-            write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
-            result.files.append(p16)
-        result.images += 1
+            result.images += 1
+        write_text_atomic(meta_csv, _csv(rows, ("file", "file16", *CSV_COLUMNS)))
+        result.files.append(meta_csv)
 
     info = _session_json(store)
-    dark_dir = out / "metadata" / store.session_id
-    for d in store.darks():
-        dst = dark_dir / Path(d.files["master"].path).name
+    for d, dst in darks:
         write_bytes_atomic(dst, store.read_file(d.files["master"]))
         result.files.append(dst)
     write_text_atomic(meta_json, json.dumps(info, indent=2, sort_keys=True) + "\n")
     result.files.append(meta_json)
-
-    if layout == "m2s2":
-        cols = ("file", "file16", *CSV_COLUMNS)
-        write_text_atomic(meta_csv, _csv(rows, cols))
-    else:
-        cols = ("file_name", *CSV_COLUMNS)
-        merged: dict[str, dict] = {}
-        if meta_csv.exists():
-            with meta_csv.open(newline="") as f:
-                for r in csv.DictReader(f):
-                    merged[r["file_name"]] = r
-        for r in rows:
-            merged[r["file_name"]] = r
-        write_text_atomic(meta_csv, _csv([merged[k] for k in sorted(merged)], cols))
-    result.files.append(meta_csv)
-    store.record_event("export", {"layout": layout, "out": str(out), "images": result.images})
     return result

@@ -1,13 +1,27 @@
 """Encoding and decoding of the session's image files (in memory, so they can be hashed and
 written atomically).
 
-- Raw mosaic: 2-D uint16 TIFF, the sensor's digital numbers unchanged, metadata as JSON
-  in the ImageDescription tag.
-- Cube: one TIFF page per band, shape (bands, height, width), in the dtype processing
-  produced: float32 (default; demosaicing averages and interpolates, so integers would
-  round away information) or uint16. float64 is stored as float32. Metadata as JSON.
-- Master dark: 2-D float32 TIFF (the mean/median of N frames keeps its fraction: that is
-  where the √N noise gain lives).
+Two formats, chosen by the rig's ``[storage] format`` (the ``compress`` arguments below);
+readers accept both, since every TIFF says how it is compressed:
+
+- ``compressed`` (default): raw mosaic and master dark as 2-D uint16 TIFF, deflate (TIFF
+  compression 8, level 1), no predictor. Chosen by measurement on simulated frames of
+  every lighting (``benchmarks/bench_storage.py``, docs/benchmarks.md): 2.8× smaller than
+  uncompressed (2.95 MB a 2048² frame), ~25 ms to write and ~10 ms to read on a quiet
+  machine; zstd is 5 % smaller and faster but OpenCV cannot read it (nor many GDAL/libtiff
+  builds), and horizontal differencing (the predictor) made these noise-dominated 10-bit
+  frames *larger*. Readers: tifffile, Pillow (``Image.open`` → mode ``I;16``), OpenCV
+  (``cv2.imread(path, cv2.IMREAD_UNCHANGED)``), anything on libtiff. The master dark is the
+  rounded mean of N frames (``processing.dark.build_master_dark`` rounds it to whole DN,
+  the precision the correction uses), so uint16 stores it exactly; a master that is not
+  whole numbers stays float32.
+- ``legacy`` (before 0.2): uncompressed raw, float32 master dark, float32 cube always stored.
+
+- Cube (when stored: legacy sessions, ``[storage] cubes = true``, calibrated frames): one
+  TIFF page per band, shape (bands, height, width), float32 (or uint16), deflate unless
+  legacy. float64 is stored as float32.
+- Metadata as JSON in the ImageDescription tag. A frame's metadata is encoded once
+  (:class:`EncodedJSON`) and the same text goes into the TIFF and the journal.
 - Preview and exported mosaics: PNG through OpenCV (8-bit gray/RGB, 16-bit gray).
 """
 
@@ -55,8 +69,14 @@ def _finite(o: Any) -> Any:
     return o
 
 
+class EncodedJSON(str):
+    """JSON text already encoded by :func:`dumps`; ``dumps`` passes it through unchanged."""
+
+
 def dumps(obj: Any) -> str:
     """Strict JSON (NaN and infinities become null, numpy scalars plain numbers)."""
+    if isinstance(obj, EncodedJSON):
+        return obj
     try:
         return json.dumps(obj, default=json_default, sort_keys=True, allow_nan=False)
     except ValueError:
@@ -64,14 +84,25 @@ def dumps(obj: Any) -> str:
         return json.dumps(_finite(plain), sort_keys=True, allow_nan=False)
 
 
-def _tiff(arr: np.ndarray, description: dict) -> bytes:
+#: TIFF compression of the ``compressed`` format (see the module docstring for the measurement).
+COMPRESSION = "zlib"
+COMPRESSION_ARGS = {"level": 1}
+
+
+def _tiff(arr: np.ndarray, description: dict | EncodedJSON, *, compress: bool = False) -> bytes:
     buf = io.BytesIO()
     # metadata=None: tifffile adds nothing of its own to our description.
     # The array's shape leads the JSON: tifffile reads any JSON description holding a "shape"
     # key (ours may nest one, e.g. a dark's provenance) as its own shaped-array metadata, so
     # a correct top-level shape keeps stored files readable by plain tifffile.imread.
-    described = {"shape": list(arr.shape), **{k: v for k, v in description.items() if k != "shape"}}
-    tifffile.imwrite(buf, arr, description=dumps(described), metadata=None, photometric="minisblack")
+    shape = json.dumps(list(arr.shape))
+    if isinstance(description, EncodedJSON):  # has no top-level "shape" (see frame_meta)
+        body = description[1:]
+        text = f'{{"shape": {shape}' + (", " + body if body.strip() != "}" else "}")
+    else:
+        text = dumps({"shape": list(arr.shape), **{k: v for k, v in description.items() if k != "shape"}})
+    kw: dict[str, Any] = {"compression": COMPRESSION, "compressionargs": COMPRESSION_ARGS} if compress else {}
+    tifffile.imwrite(buf, arr, description=text, metadata=None, photometric="minisblack", **kw)
     return buf.getvalue()
 
 
@@ -82,13 +113,14 @@ def encode_tiff(arr: np.ndarray, description: dict) -> bytes:
     return _tiff(np.ascontiguousarray(arr), description)
 
 
-def encode_raw(raw: np.ndarray, description: dict, shape: tuple[int, int] | None = None) -> bytes:
+def encode_raw(raw: np.ndarray, description: dict | EncodedJSON, shape: tuple[int, int] | None = None, *,
+               compress: bool = True) -> bytes:
     if not isinstance(raw, np.ndarray) or raw.dtype != np.uint16 or raw.ndim != 2:
         raise InvalidImage(f"raw mosaic must be a 2-D uint16 array, got {_desc(raw)}")
     if shape is not None and raw.shape != shape:
         raise InvalidImage(f"raw mosaic is {raw.shape[0]}x{raw.shape[1]}, the camera gives "
                            f"{shape[0]}x{shape[1]} (height x width)")
-    return _tiff(np.ascontiguousarray(raw), description)
+    return _tiff(np.ascontiguousarray(raw), description, compress=compress)
 
 
 def normalise_cube(cube: np.ndarray, n_bands: int) -> np.ndarray:
@@ -106,16 +138,29 @@ def normalise_cube(cube: np.ndarray, n_bands: int) -> np.ndarray:
     return np.ascontiguousarray(cube)
 
 
-def encode_cube(cube: np.ndarray, description: dict, n_bands: int) -> bytes:
-    return _tiff(normalise_cube(cube, n_bands), description)
+def encode_cube(cube: np.ndarray, description: dict, n_bands: int, *, compress: bool = False) -> bytes:
+    return _tiff(normalise_cube(cube, n_bands), description, compress=compress)
 
 
-def encode_dark(master: np.ndarray, description: dict, shape: tuple[int, int] | None = None) -> bytes:
+def dark_array(master: np.ndarray, *, compress: bool) -> np.ndarray:
+    """The master dark as stored: uint16 when its values are whole DN in range (the master
+    darks processing builds are), else float32; always float32 in the legacy format."""
+    if compress and master.dtype.kind in "ui" and master.size and master.min() >= 0 and master.max() <= 65535:
+        return np.ascontiguousarray(master, dtype=np.uint16)
+    if compress and master.dtype.kind == "f" and master.size:
+        whole = np.rint(master)
+        if np.array_equal(whole, master) and whole.min() >= 0 and whole.max() <= 65535:
+            return whole.astype(np.uint16)
+    return np.ascontiguousarray(master, dtype=np.float32)
+
+
+def encode_dark(master: np.ndarray, description: dict, shape: tuple[int, int] | None = None, *,
+                compress: bool = True) -> bytes:
     if not isinstance(master, np.ndarray) or master.ndim != 2 or master.dtype.kind not in "uif":
         raise InvalidImage(f"master dark must be a 2-D numeric array, got {_desc(master)}")
     if shape is not None and master.shape != shape:
         raise InvalidImage(f"master dark is {master.shape}, the camera gives {shape}")
-    return _tiff(np.ascontiguousarray(master, dtype=np.float32), description)
+    return _tiff(dark_array(master, compress=compress), description, compress=compress)
 
 
 def encode_png(img: np.ndarray) -> bytes:

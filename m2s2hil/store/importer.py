@@ -6,16 +6,23 @@
 sorted by satellite and build. Files outside ``HIL/`` (README, metadata) and dot-files
 are ignored.
 
-- ``.png``: the release's 8-bit mosaic (three identical channels, or one). Stored as the
-  raw mosaic with its values unchanged, in a session whose camera model says
-  ``bit_depth = 8`` (the two low bits the release dropped are not invented back).
+- ``HIL16/<same path>`` (written by ``m2s2hil export``): the lossless 16-bit mosaic, used
+  instead of the 8-bit one when present: the sensor's DN come back bit for bit.
+- ``.png`` without a ``HIL16`` twin: the release's 8-bit mosaic (three identical channels,
+  or one). Stored as the raw mosaic with its values unchanged, in a session whose camera
+  model says ``bit_depth = 8`` (the two low bits the release dropped are not invented back).
 - Raw files LibRaw reads (``.dng``, ``.nef``, ``.cr2``, ``.arw``, ...) through rawpy:
   ``raw_image_visible`` is the mosaic; the bit depth comes from the white level.
 
-``k`` maps back as in the export: azimuth index ``k % n`` (n = azimuths per turn for
-``azimuth_step_deg``), extra frame ``k // n``. Poses are the nominal ones (the release
-has no pose metadata); exposure is unknown and recorded as such. The sensor size and bit
-depth of the session's rig are taken from the files (all files of a build must agree).
+Metadata sidecars (``metadata/<session>.csv`` and ``.json``, written by the export) are read
+when present (m2s2hil.store.import_meta): each frame gets back its exposure, gain,
+temperature, dark id, pose read-backs and timestamp, the session its camera model (bands,
+FWHM, mosaic layout, bit depth) and azimuth grid, and the master darks in
+``metadata/<session>/`` are stored again under their ids. Without them, ``k`` maps back as
+in the export: azimuth index ``k % n`` (n = azimuths per turn for ``azimuth_step_deg``),
+extra frame ``k // n``; poses are the nominal ones, exposure is unknown and recorded as
+such, and the sensor size and bit depth come from the files (all files of a build must
+agree).
 
 Nothing is half-imported: every name is validated before anything is written, the
 sessions are built in a hidden staging folder under ``root``, and only renamed into
@@ -31,6 +38,7 @@ import secrets
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,9 +46,12 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.errors import CatalogError, UsageError
-from m2s2hil.plan import DarkPolicy, Sweep, frame_event_id
+from m2s2hil.plan import DarkPolicy, Sweep, dark_event, frame_event_id
+from m2s2hil.store import import_meta
 from m2s2hil.store.atomic import fsync_dir
-from m2s2hil.store.frame_files import InvalidImage, decode_png
+from m2s2hil.store.frame_files import InvalidImage, decode_png, decode_tiff
+from m2s2hil.store.frame_meta import STORE_KEYS
+from m2s2hil.store.import_meta import Sidecar, SidecarError, bit_depth, camera_fields, read_sidecars
 from m2s2hil.store.session import SessionStore
 
 RAW_EXTENSIONS = frozenset({
@@ -72,10 +83,11 @@ class _Item:
     raw: bool
 
 
-def with_sensor(rig: RigConfig, *, width: int, height: int, bit_depth: int) -> RigConfig:
-    """A copy of ``rig`` whose camera model has this sensor size and bit depth."""
+def with_sensor(rig: RigConfig, *, width: int, height: int, bit_depth: int, **model: Any) -> RigConfig:
+    """A copy of ``rig`` whose camera model has this sensor size and bit depth (and ``model``'s
+    other fields: bands, FWHM, layout, ... as an export recorded them)."""
     data = rig.model_dump(mode="json")
-    data["camera"]["model"].update(width=width, height=height, bit_depth=bit_depth)
+    data["camera"]["model"].update(width=width, height=height, bit_depth=bit_depth, **model)
     return RigConfig.model_validate(data)
 
 
@@ -134,8 +146,28 @@ def scan_published_layout(hil: Path) -> list[_Item]:
     return items
 
 
-def _read(item: _Item) -> tuple[np.ndarray, int, str]:
-    """(mosaic uint16, bit depth, format) of one file."""
+def _read16(path: Path, bits: int | None) -> tuple[np.ndarray, int, str]:
+    """A lossless 16-bit mosaic of ``HIL16/``; the bit depth from the metadata, else the
+    smallest of 10, 12, 16 bits holding its largest value."""
+    try:
+        img = decode_png(path.read_bytes())
+    except InvalidImage as exc:
+        raise DatasetImportError(path, str(exc)) from None
+    if img.dtype != np.uint16 or img.ndim != 2:
+        raise DatasetImportError(path, f"expected a 16-bit single-channel PNG, got {img.dtype} {img.shape}")
+    top = int(img.max()) if img.size else 0
+    if bits is None:
+        bits = next(b for b in (10, 12, 16) if top < (1 << b))
+    elif top >= (1 << bits):
+        raise DatasetImportError(path, f"value {top} does not fit the {bits} bits its metadata gives")
+    return img, bits, "png16"
+
+
+def _read(item: _Item, sidecar: Sidecar | None = None) -> tuple[np.ndarray, int, str]:
+    """(mosaic uint16, bit depth, format) of one file (its lossless HIL16 twin if there is one)."""
+    p16 = item.path.parents[4] / "HIL16" / Path(*item.path.parts[-4:])
+    if not item.raw and p16.is_file():
+        return _read16(p16, bit_depth(sidecar))
     if item.raw:
         import rawpy
 
@@ -172,7 +204,12 @@ def import_dataset(path: str | Path, root: str | Path, layout: str = "m2s2", *,
         raise UsageError(f"unknown import layout {layout!r}; known: m2s2")
     base_rig = rig or default_rig()
     root = Path(root)
-    items = scan_published_layout(find_hil_root(Path(path)))
+    hil = find_hil_root(Path(path))
+    items = scan_published_layout(hil)
+    try:
+        sidecars = read_sidecars(hil.parent)
+    except SidecarError as exc:
+        raise DatasetImportError(str(exc).split(": ", 1)[0], str(exc).split(": ", 1)[-1]) from None
     groups: dict[tuple[str, str], list[_Item]] = {}
     for it in items:
         groups.setdefault((it.satellite, it.build), []).append(it)
@@ -183,7 +220,8 @@ def import_dataset(path: str | Path, root: str | Path, layout: str = "m2s2", *,
     built: list[str] = []
     try:
         for (sat, build), group in sorted(groups.items()):
-            built.append(_import_group(staging, sat, build, group, base_rig, azimuth_step_deg, clock))
+            built.append(_import_group(staging, sat, build, group, base_rig, azimuth_step_deg, clock,
+                                       {it.rel: sidecars[it.rel] for it in group if it.rel in sidecars}))
         clash = [sid for sid in built if (root / sid).exists()]
         if clash:
             raise DatasetImportError(root / clash[0], "a session with this id already exists")
@@ -196,51 +234,105 @@ def import_dataset(path: str | Path, root: str | Path, layout: str = "m2s2", *,
 
 
 def _import_group(staging: Path, sat: str, build: str, group: list[_Item], base_rig: RigConfig,
-                  step: float, clock: Clock) -> str:
+                  step: float, clock: Clock, sidecars: dict[str, Sidecar]) -> str:
     cat = load_catalog()
-    first, bits, first_fmt = _read(group[0])
+    first, bits, first_fmt = _read(group[0], sidecars.get(group[0].rel))
     h, w = first.shape
-    n_probe = Sweep(satellite=sat, build=build, azimuth_step_deg=step)
+    side0 = sidecars.get(group[0].rel)
+    exported = side0.session.get("sweep", {}) if side0 is not None else {}
+    step = float(exported.get("azimuth_step_deg", step))
+    start = float(exported.get("azimuth_start_deg", 0.0))
+    n_probe = Sweep(satellite=sat, build=build, azimuth_step_deg=step, azimuth_start_deg=start)
     n_az = len(n_probe.azimuths())
+
+    def pose_index(it: _Item) -> tuple[int, int]:  # (azimuth index, frame)
+        side = sidecars.get(it.rel)
+        r = side.row if side is not None else {}
+        if r.get("azimuth_index", "").isdigit() and r.get("frame", "").isdigit():
+            return int(r["azimuth_index"]), int(r["frame"])
+        return it.k % n_az, it.k // n_az
+
     lights = [c for c in cat.lighting if any(it.lighting == c for it in group)]
     tilts = [e for e in cat.elevations if any(it.elevation == e for it in group)]
     sweep = Sweep(
         satellite=sat, build=build, lighting=lights, tilts=tilts, azimuth_step_deg=step,
-        frames_per_pose=max(it.k // n_az for it in group) + 1, dark=DarkPolicy(frames=0),
-        axis_order="light>tilt>azimuth", reorder=False,
+        azimuth_start_deg=start, frames_per_pose=max(pose_index(it)[1] for it in group) + 1,
+        dark=DarkPolicy(frames=0), axis_order="light>tilt>azimuth", reorder=False,
     )
     try:
-        rig = with_sensor(base_rig, width=w, height=h, bit_depth=bits)
+        rig = with_sensor(base_rig, width=w, height=h, bit_depth=bits,
+                          **(camera_fields(side0) if side0 is not None else {}))
     except ValueError as exc:
         raise DatasetImportError(group[0].path, f"unusable mosaic size {w}x{h}: {exc}") from None
     events = {e.event_id: e for e in sweep.expand(rig) if e.kind == "frame"}
     store = SessionStore.create(staging, sweep, rig, clock=clock)
     try:
         store.set_state("running")
+        _import_darks(store, group, sidecars)
         for i, it in enumerate(group):
-            mosaic, b, fmt = (first, bits, first_fmt) if i == 0 else _read(it)
+            side = sidecars.get(it.rel)
+            mosaic, b, fmt = (first, bits, first_fmt) if i == 0 else _read(it, side)
             if mosaic.shape != (h, w):
                 raise DatasetImportError(it.path, f"mosaic is {mosaic.shape[1]}x{mosaic.shape[0]}, the "
                                                   f"other files of {sat} {build} are {w}x{h}")
             if b != bits:
                 raise DatasetImportError(it.path, f"{b}-bit data among {bits}-bit files of {sat} {build}")
-            az_i, f = it.k % n_az, it.k // n_az
+            az_i, f = pose_index(it)
+            if az_i >= n_az:
+                raise DatasetImportError(it.path, f"azimuth index {az_i} is outside the {n_az} azimuths")
             nominal = sweep.azimuths()[az_i]
             ev = events[frame_event_id(it.lighting, it.elevation, nominal, f)]
-            store.write_frame(ev, mosaic, meta={
+            src = it.path if fmt != "png16" else it.path.parents[4] / "HIL16" / Path(*it.path.parts[-4:])
+            meta = {
                 "source": "import",
-                "source_file": it.rel,
+                "source_file": it.rel if fmt != "png16" else "HIL16/" + it.rel.split("/", 1)[1],
                 "source_format": fmt,
-                "source_sha256": hashlib.sha256(it.path.read_bytes()).hexdigest(),
-                "exposure_s": None,
-                "gain": None,
-                "exposure_known": False,
-                "pose_source": "nominal, from the file index",
-                "dark_id": None,
+                "source_sha256": hashlib.sha256(src.read_bytes()).hexdigest(),
                 "bit_depth": bits,
-            })
-        store.record_event("import", {"files": len(group), "bit_depth": bits, "width": w, "height": h})
+            }
+            if side is not None:
+                meta.update(import_meta.frame_meta(side))
+            else:
+                meta.update({"exposure_s": None, "gain": None, "exposure_known": False,
+                             "pose_source": "nominal, from the file index", "dark_id": None})
+            if meta.get("dark_id") and meta["dark_id"] not in {d.dark_id for d in store.darks()}:
+                meta["dark_id"] = None  # its master dark was not exported with it
+            store.write_frame(ev, mosaic, meta=meta)
+        store.record_event("import", {"files": len(group), "bit_depth": bits, "width": w, "height": h,
+                                      "sidecars": len(sidecars)})
         store.complete("completed")
         return store.session_id
     finally:
         store.close()
+
+
+def _import_darks(store: SessionStore, group: list[_Item], sidecars: dict[str, Sidecar]) -> None:
+    """Store the master darks the group's exported sessions came with, under their ids."""
+    seen: dict[str, str] = {}  # dark id -> sha256 of its file
+    sources = {id(s.session): s for s in sidecars.values()}
+    for side in sources.values():
+        try:
+            entries = import_meta.darks(side)
+        except SidecarError as exc:
+            raise DatasetImportError(str(exc).split(": ", 1)[0], str(exc).split(": ", 1)[-1]) from None
+        for d, path in entries:
+            data = path.read_bytes()
+            digest = hashlib.sha256(data).hexdigest()
+            did = str(d["dark_id"])
+            if did in seen:
+                if seen[did] != digest:
+                    raise DatasetImportError(path, f"two different master darks are named {did!r}")
+                continue
+            seen[did] = digest
+            try:
+                arr, desc = decode_tiff(data)
+            except Exception as exc:  # tifffile raises several kinds on a damaged file
+                raise DatasetImportError(path, f"unreadable master dark: {exc}") from None
+            ev = dark_event(float(d["exposure_s"]), float(d["gain"]), int(d.get("n_frames") or 1))
+            ev = ev.model_copy(update={"event_id": did, "exposure_s": float(d["exposure_s"])})
+            meta = {k: v for k, v in desc.items() if k not in STORE_KEYS and k not in ("dark_id", "shape")}
+            meta.update({"source": "import", "source_file": path.relative_to(side.folder.parent).as_posix()})
+            try:
+                store.write_dark(ev, arr, meta=meta)
+            except InvalidImage as exc:
+                raise DatasetImportError(path, str(exc)) from None

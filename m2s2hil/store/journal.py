@@ -14,11 +14,18 @@ Tables:
 Every write is one transaction (``BEGIN IMMEDIATE`` … ``COMMIT``). A full disk inside
 SQLite rolls the transaction back and raises :class:`DiskFull`. The connection is shared
 between the engine's threads behind a lock.
+
+A journal opened ``read_only`` uses SQLite's ``mode=ro`` (and ``immutable`` when no
+``-wal`` file exists): it can never change the file nor add any beside it.
+A damaged database (SQLite's "malformed" or "not a database") raises
+:class:`JournalDamaged` wherever it is met; :meth:`Journal.check` runs ``PRAGMA
+quick_check`` so an owner finds the damage before it writes anything.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -89,6 +96,21 @@ class JournalError(M2S2Error):
     """The journal cannot be opened or read (missing, not a database, wrong schema)."""
 
 
+class JournalDamaged(JournalError):
+    """The journal's database is damaged (``quick_check`` fails, or SQLite says malformed)."""
+
+
+_DAMAGE_CODES = {11, 26}  # SQLITE_CORRUPT, SQLITE_NOTADB
+
+
+def _is_damage(exc: sqlite3.Error) -> bool:
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code is not None:
+        return code & 0xFF in _DAMAGE_CODES
+    text = str(exc)
+    return "malformed" in text or "not a database" in text
+
+
 class DuplicateEvent(M2S2Error):
     """An event that is already committed (or being written) was written again."""
 
@@ -105,24 +127,43 @@ def _is_full(exc: sqlite3.Error) -> bool:
 
 
 class Journal:
-    def __init__(self, path: Path, *, create: bool = False) -> None:
+    def __init__(self, path: Path, *, create: bool = False, read_only: bool = False) -> None:
         self.path = Path(path)
+        self.read_only = read_only and not create
         if not create and not self.path.is_file():
             raise JournalError(f"{self.path}: no journal")
         self._lock = threading.RLock()
+        immutable = False
         try:
-            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30)
+            if self.read_only:
+                # No -wal file: everything is in the main file, read it as immutable so that no
+                # -wal/-shm appear either. A -wal file (a live or a killed writer's) is read too.
+                # An archived session in a folder we cannot write is immutable as well: WAL would
+                # need to create its -shm file there (and no writer can change such a folder).
+                immutable = (not Path(f"{self.path}-wal").exists()
+                             or not os.access(self.path.parent, os.W_OK))
+                uri = f"{self.path.resolve().as_uri()}?mode=ro" + ("&immutable=1" if immutable else "")
+                self._db = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False,
+                                           timeout=30)
+            else:
+                self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False,
+                                           timeout=30)
             self._db.row_factory = sqlite3.Row
-            mode = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-            self._db.execute("PRAGMA synchronous=FULL")
+            if self.read_only:  # a read-only connection can only report the mode
+                mode = self._db.execute("PRAGMA journal_mode").fetchone()[0]
+            else:
+                mode = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+                self._db.execute("PRAGMA synchronous=FULL")
             if create:
                 self._db.executescript(_SCHEMA)
                 self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
             row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
         except sqlite3.DatabaseError as exc:
             self.close()
+            if _is_damage(exc):
+                raise JournalDamaged(f"{self.path}: journal damaged ({exc})") from None
             raise JournalError(f"{self.path}: not a readable session journal ({exc})") from None
-        if mode.lower() != "wal":
+        if mode.lower() != "wal" and not (self.read_only and immutable):  # immutable reports "delete"
             self.close()
             raise JournalError(f"{self.path}: cannot switch the journal to WAL mode (got {mode})")
         if row is None or row[0] != str(SCHEMA_VERSION):
@@ -148,15 +189,32 @@ class Journal:
                     self._db.execute("ROLLBACK")
                 if isinstance(exc, sqlite3.OperationalError) and _is_full(exc):
                     raise DiskFull(self.path.parent, detail=str(exc)) from exc
+                if isinstance(exc, sqlite3.DatabaseError) and _is_damage(exc):
+                    raise JournalDamaged(f"{self.path}: journal damaged ({exc})") from None
                 raise
 
     def query(self, sql: str, args: tuple = ()) -> list[sqlite3.Row]:
         with self._lock:
-            return self._db.execute(sql, args).fetchall()
+            try:
+                return self._db.execute(sql, args).fetchall()
+            except sqlite3.DatabaseError as exc:
+                if _is_damage(exc):
+                    raise JournalDamaged(f"{self.path}: journal damaged ({exc})") from None
+                raise
 
     def pragma(self, name: str) -> Any:
         with self._lock:
             return self._db.execute(f"PRAGMA {name}").fetchone()[0]
+
+    def check(self) -> str | None:
+        """``PRAGMA quick_check``: None when the database is sound, else what is wrong
+        (first lines). Catches the damage a query of the session row would not touch."""
+        with self._lock:
+            try:
+                rows = [r[0] for r in self._db.execute("PRAGMA quick_check(5)").fetchall()]
+            except sqlite3.DatabaseError as exc:
+                return str(exc)
+        return None if rows == ["ok"] else "; ".join(str(r) for r in rows)
 
     def close(self) -> None:
         db = getattr(self, "_db", None)
@@ -234,6 +292,23 @@ class Journal:
             db.execute("INSERT INTO events (time, kind, payload) VALUES (?, 'skip', ?)",
                        (now, dumps({"event_id": event_id, "reason": reason, "fault_class": fault_class})))
             db.execute("UPDATE session SET updated = ? WHERE id = 1", (now,))
+
+    def remove_record(self, event_id: str, *, reason: str, now: float) -> dict | None:
+        """Take a frame's or a dark's row out (its files failed verification), keeping the
+        whole row in a ``quarantined`` event; the event is then pending again."""
+        with self.transaction() as db:
+            for table, key in (("frames", "event_id"), ("darks", "dark_id")):
+                row = db.execute(f"SELECT * FROM {table} WHERE {key} = ?", (event_id,)).fetchone()
+                if row is None:
+                    continue
+                kept = dict(zip(row.keys(), tuple(row), strict=True))
+                db.execute(f"DELETE FROM {table} WHERE {key} = ?", (event_id,))
+                db.execute("INSERT INTO events (time, kind, payload) VALUES (?, 'quarantined', ?)",
+                           (now, dumps({"event_id": event_id, "table": table, "reason": reason,
+                                        "row": kept})))
+                db.execute("UPDATE session SET updated = ? WHERE id = 1", (now,))
+                return kept
+        return None
 
     def is_completed(self, event_id: str) -> bool:
         return bool(self.query("SELECT 1 FROM frames WHERE event_id = ? UNION ALL "

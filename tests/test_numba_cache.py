@@ -1,0 +1,63 @@
+"""Test processes side by side never share a numba cache (tests/numba_cache.py)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+
+KERNEL = '''
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def twice_sum(a):
+    s = a.dtype.type(0)
+    for x in a:
+        s += x
+    return 2 * s
+'''
+
+WORKER = '''
+import sys, time
+sys.path[:0] = [{here!r}, {tree!r}]
+from numba_cache import claim_slot
+slot = claim_slot(__import__("pathlib").Path({base!r}))
+import numpy as np
+import kernel
+values = [kernel.twice_sum(np.arange(1000, dtype=dtype)) for dtype in sys.argv[1].split(",")]
+print(slot.name, min(values), sum(kernel.twice_sum.stats.cache_hits.values()), flush=True)
+time.sleep(float(sys.argv[2]))  # hold the slot while the other one runs
+'''
+
+
+def _start(tree: Path, base: Path, dtype: str, hold_s: float) -> subprocess.Popen:
+    code = WORKER.format(here=str(HERE), tree=str(tree), base=str(base))
+    return subprocess.Popen([sys.executable, "-c", code, dtype, str(hold_s)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow  # three interpreters importing numba and compiling: ~6 s on 2 shared cores
+def test_two_processes_compiling_one_tree_get_their_own_caches(tmp_path):
+    tree, base = tmp_path / "tree", tmp_path / "caches"
+    tree.mkdir()
+    (tree / "kernel.py").write_text(KERNEL)
+    # Two signatures of one cache=True kernel compiled at the same time, as two test runs would.
+    procs = [_start(tree, base, "float32", 0.3), _start(tree, base, "int64", 0.3)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    for p, (_out, err) in zip(procs, outs, strict=True):
+        assert p.returncode == 0, err
+    slots = sorted(out.split()[0] for out, _ in outs)
+    assert slots == ["slot-0", "slot-1"]
+    assert sorted(float(out.split()[1]) for out, _ in outs) == [999000.0, 999000.0]
+    # The next run, alone, takes slot 0 again and finds the kernel compiled there.
+    again = _start(tree, base, "float32,int64", 0.0)
+    out, err = again.communicate(timeout=120)
+    assert again.returncode == 0, err
+    name, value, hits = out.split()
+    assert name == "slot-0" and float(value) == 999000.0 and int(hits) >= 1
