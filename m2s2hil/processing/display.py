@@ -44,8 +44,8 @@ def rgb_bands(bands_nm: Sequence[float]) -> tuple[int, int, int]:
     return r, g, b
 
 
-def false_colour(cube: np.ndarray, bands_nm: Sequence[float], *, white: Sequence[float] | None = None,
-                 percentile: float = 99.5) -> np.ndarray:
+def false_colour(cube: np.ndarray, bands_nm: Sequence[float], *,
+                 white: Sequence[float] | np.ndarray | None = None, percentile: float = 99.5) -> np.ndarray:
     """(bands, H, W) cube → (H, W, 3) uint8 sRGB image (see the module docstring).
 
     ``white``: the signal of a white reference per band (all bands); None for grey world.
