@@ -1,41 +1,50 @@
-"""The default segmenter: Otsu foreground + Gaussian mixture on unit-length spectra.
+"""The default segmenter: foreground + Gaussian mixture on shading-invariant spectra, fitted on the
+interior of material regions.
 
-Steps for a cube ``(bands, H, W)``:
+Steps for a cube ``(bands, H, W)`` (defaults since issue 15; docs/evaluation.md, "How many
+materials", has the comparison that chose them):
 
-1. Band energy e = ‖x‖₂ per pixel (L2 norm over bands). Foreground = pixels whose
-   log(e + 10⁻³·max e) lies above its Otsu threshold (``skimage.filters.threshold_otsu``).
-   Otsu runs on the log because shading is multiplicative: in the linear domain a
-   satellite half in shadow forms its own histogram mode and Otsu cuts between the lit
-   and the shadowed half instead of between object and background. A cube with
-   constant energy has no foreground and comes back all background.
-2. Each foreground spectrum is divided by its norm (unit length), so the model sees
-   spectral *shape* (spectral angle), not brightness or shading.
-3. ``sklearn.mixture.GaussianMixture`` with 1..``max_materials`` components (12 by
-   default, above the catalog's 11 materials) is fitted on at most ``sample_size``
-   foreground pixels drawn with ``np.random.default_rng(seed)``; the number with the
-   lowest BIC on that sample wins. The sweep stops early once BIC has not improved for
-   ``bic_patience`` consecutive counts (BIC curves are U-shaped; this saves most fits).
-   Every fit uses ``random_state=seed``. A single-band cube has no spectral shape: its
-   foreground is returned as one material without fitting.
-4. Clean-up of the winning model (BIC over-splits non-Gaussian clusters, e.g. noise
-   that grows as shading darkens, and spends components on a few outlier pixels):
-   components whose unit mean spectra lie within ``merge_angle_deg`` (1°) of each other
-   are merged (transitively), and merged groups holding less than
-   ``min_material_fraction`` (0.2 %) of the model's weight are dropped. Each foreground
-   pixel goes to the surviving group with the largest summed posterior probability.
-   Groups are numbered 1..n by decreasing pixel count (ties by first component index),
-   so ids are reproducible.
-5. Optional (``smooth=True``): superpixels (``skimage.segmentation.slic``, SLICO, on the
-   unit spectra, foreground only) and a majority vote of the cluster ids inside each.
+1. Band energy e = ‖x‖₂ per pixel. Foreground on log(e + 10⁻³·max e) (the log because shading is
+   multiplicative: in the linear domain a half in shadow forms its own histogram mode).
+   ``foreground="backdrop"`` (default): above the lower of the Otsu threshold and the backdrop's
+   median + 6 robust SDs (``foreground_mask``) — with a bright object Otsu's cut can fall above a
+   dark material and hand it to the background. ``"otsu"``: Otsu alone (the old rule). A cube
+   with constant energy has no foreground and comes back all background.
+2. Features: each spectrum divided by its norm (unit length: spectral angle, shape not
+   brightness) or ``features="log-chromaticity"``; plus, with ``brightness_weight`` w > 0
+   (default 0.1), w·log e as one more coordinate — an albedo cue: achromatic materials (silver,
+   dark grey, white) have nearly the same spectral shape and differ mostly in brightness, while
+   shading on a face changes log e far less than the albedo ratio between them.
+3. Fit pixels (``fit_pixels="homogeneous"``): foreground pixels inside the eroded foreground whose
+   four neighbours lie within ``homogeneity_deg`` (3°) of them; with ``noise_scaled`` the angle
+   grows as √(median e / e) for pixels darker than the median (shot noise), so a dark material
+   still has fit pixels. Rim pixels (object + backdrop) and material boundaries (two spectra; the
+   super-pixel grid also samples the bands at slightly different places) stay out of the fit:
+   fitted on every pixel (``"all"``, the old default), BIC spent components on those blends.
+4. Count: ``sklearn.mixture.GaussianMixture`` with 1..``max_materials`` (12) components on at most
+   ``sample_size`` fit pixels (``np.random.default_rng(seed)``); the lowest ``criterion`` wins:
+   ``"bic"`` (default) or ``"icl"`` (BIC + twice the classification entropy). The sweep stops
+   once it has not improved for ``bic_patience`` counts. ``"bayes"``: one
+   ``BayesianGaussianMixture`` with a sparse Dirichlet weight prior (``weight_prior``), surplus
+   components end with ~0 weight. ``n_materials`` fixes the count (``for_build``: from the
+   catalog, named ``spectral-catalog-k``). A single-band cube: the foreground is one material.
+5. Clean-up: components whose unit mean spectra (brightness coordinate left out) lie within
+   ``merge_angle_deg`` (1.5°) merge (transitively); groups under ``min_material_fraction``
+   (0.2 %) of the weight are dropped; every foreground pixel goes to the group with the largest
+   summed posterior. Groups are numbered 1..n by decreasing pixel count (ties by first
+   component index), so ids are reproducible.
+6. Optional (``smooth=True``): superpixels (``skimage.segmentation.slic``, SLICO, on the
+   features, foreground only) and a majority vote of the cluster ids inside each.
 
 BLAS threads: the whole analysis runs inside ``threadpoolctl.threadpool_limits(blas_threads)``
 (1 by default). The GMM's linear algebra is on 10×10 matrices, where multi-threaded BLAS
 is pure overhead; on a busy 2-core machine it made the BIC sweep ten times slower
 (1.65 s vs 0.17 s for six fits on 20k pixels). ``None`` leaves the library default.
 
-Known limit: unit-length spectra discard albedo, so achromatic materials that differ
-only in brightness (e.g. Pro Silver vs Dark Grey, if both are spectrally flat) fall into
-one cluster.
+Known limits: the brightness coordinate separates dark grey from silver, but silver and cold
+white (close in both shape and brightness) can still merge; materials that cover only a few
+pixels have no homogeneous interior and are found only if their spectra stand out. The
+defaults were chosen on the simulator's frames (docs/evaluation.md), not on real captures.
 """
 
 from __future__ import annotations

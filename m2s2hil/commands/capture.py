@@ -188,7 +188,8 @@ def _run_engine(engine: Engine, *, virtual: bool) -> int:
                         interrupts += 1
                     if not answer:
                         break  # paused and resumable; the resumed run asks again
-                    engine.confirm_lens(lens)
+                    with contextlib.suppress(UsageError):  # e.g. ended meanwhile: seen next round
+                        engine.confirm_lens(lens)
                     continue
                 # Paused (by Ctrl-C or by the engine itself, e.g. a full disk): the session is
                 # saved and resumable, so the command ends rather than waiting for a resume.

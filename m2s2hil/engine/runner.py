@@ -177,7 +177,9 @@ class Engine:
         self._state = S.IDLE
         self._pause_reason: str | None = None
         self._lens_wait: bool | None = None  # parked for the operator to cap (True) / uncap the lens
-        self._lens_on = False  # the operator confirmed the cap on (a real rig's; see darks)
+        # The operator confirmed the cap on (a real rig's; see darks). A run resumed after one
+        # that ended capped (e.g. parked for the uncap) asks for it off before any lit frame.
+        self._lens_on = rig.lens_needs_operator and _last_lens_capped(store)
         self._finishing = False
         self._error: BaseException | None = None
         self._error_text: str | None = None
@@ -865,6 +867,12 @@ class Engine:
         self._publish(Captured, event_id=ev.event_id, index=ev.index, lighting=ev.lighting,
                       elevation=ev.elevation, azimuth_deg=meta["pose"]["turntable_deg"],
                       tilt_deg=meta["pose"]["tilt_deg"], exposure_s=meta["exposure_s"])
+
+
+def _last_lens_capped(store: SessionStore) -> bool:
+    """The session's last lens confirmation (journal event ``lens``) said the cap was on."""
+    last = [e for e in store.events() if e["kind"] == "lens"][-1:]
+    return bool(last and last[0]["payload"].get("capped"))
 
 
 def interrupted_sessions(root: str | Path) -> list[str]:
