@@ -119,6 +119,8 @@ def screenshots(page, base: str, out: Path) -> None:
     page.click("#white-form button[type=submit]")
     page.wait_for_function("!['', 'capturing…'].includes(document.getElementById('w-result').textContent)",
                            timeout=120000)
+    httpx.put(base + "/rig/lamps", json={"preset": "strong"}, headers=HEADERS)  # a lit, coloured scene
+    page.fill("#p-exposure", "6")
     page.click("#phase-form button[type=submit]")
     page.wait_for_function("document.getElementById('p-result').textContent.length > 0", timeout=60000)
     page.screenshot(path=str(out / "console_calibration.png"))
@@ -131,7 +133,7 @@ def screenshots(page, base: str, out: Path) -> None:
     time.sleep(3)
     page.keyboard.press("Escape")
     page.wait_for_function("document.getElementById('banner').textContent.includes('EMERGENCY STOP')")
-    page.wait_for_function("document.getElementById('run-state').textContent === 'aborted'", timeout=60000)
+    page.wait_for_function("document.getElementById('run-state').textContent === 'estopped'", timeout=60000)
     page.screenshot(path=str(out / "console_estop.png"))
 
 

@@ -19,7 +19,7 @@ from m2s2hil.config import RigConfig, default_rig, parse_rig
 from m2s2hil.rig.factory import open_simulated_rig
 
 TOKEN = "s3cret-token-for-tests-0123456789"
-TERMINAL = ("completed", "failed", "aborted", "cancelled")
+TERMINAL = ("completed", "completed_with_gaps", "failed", "aborted", "cancelled", "estopped")
 
 
 def small_rig_config(size: int = 256, **simulation: Any) -> RigConfig:

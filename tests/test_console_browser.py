@@ -109,7 +109,7 @@ def test_console_end_to_end(tmp_path: Path) -> None:
         page.keyboard.press("Escape")
         page.wait_for_function("document.getElementById('banner').textContent.includes('EMERGENCY STOP')")
         st = d.wait_done(sid2)
-        assert st["state"] == "aborted" and st["done"] < st["total"]
+        assert st["state"] == "estopped" and st["done"] < st["total"]
         assert d.rig.lights.state() == frozenset()
         page.wait_for_function("document.getElementById('rig-status').textContent.startsWith('held')")
         page.screenshot(path=str(shots / "console_estop.png"))

@@ -472,7 +472,8 @@ class SessionManager:
         eng = job.engine if job is not None else None
         if job is not None and eng is not None and eng.state is RunState.ABORTED:
             job.finished.wait(5.0)  # its run has given the session's owner lock back
-            self._mark_estopped(job.session_id, check)
+            if self._mark_estopped(job.session_id, check):
+                job.final_state = "estopped"  # what its status says from now on, as the journal does
         return {
             "safe": check.safe, "lamps_on": check.lamps_on, "moving": check.moving,
             "session_id": job.session_id if job else None,
@@ -481,9 +482,10 @@ class SessionManager:
             "elapsed_s": time.monotonic() - t0,
         }
 
-    def _mark_estopped(self, session_id: str, check: SafeCheck) -> None:
+    def _mark_estopped(self, session_id: str, check: SafeCheck) -> bool:
         """``estopped``, not ``aborted``: the operator did not give the capture up, so it may be
-        resumed once the stop is cleared (POST /queue/release), never before."""
+        resumed once the stop is cleared (POST /queue/release), never before. False when the
+        journal could not be written (the session then stays ``aborted``)."""
         try:
             store = self._open(session_id)
             try:
@@ -493,6 +495,8 @@ class SessionManager:
                 store.close()
         except Exception as exc:
             log.error("could not mark session %s as e-stopped: %s", session_id, exc)
+            return False
+        return True
 
     def check_safe(self) -> SafeCheck:
         """Read the devices back: which lamps are on, which axis moves."""

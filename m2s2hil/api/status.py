@@ -27,10 +27,12 @@ def engine_status(job: Job, engine: Engine) -> dict:
     """The status of a job from its engine (running, or finished in this daemon)."""
     st = engine.status().to_dict()
     out = {k: st[k] for k in _FROM_ENGINE}
-    out.update(session_id=job.session_id, state=st["state"], live=True, queue_position=None,
+    # an e-stopped session's engine ended "aborted"; the journal (and so the status) says "estopped"
+    state = "estopped" if job.final_state == "estopped" else st["state"]
+    out.update(session_id=job.session_id, state=state, live=True, queue_position=None,
                lamps_on=list(st["lamps_on"]), faults=list(st["faults"])[-50:], fault_count=st["fault_count"],
                satellite=job.store.sweep.satellite, build=job.store.sweep.build,
-               created=job.store.created, resumable=False)
+               created=job.store.created, resumable=state == "estopped")
     return out
 
 

@@ -178,6 +178,7 @@ function indexOf(buf, len, pat, from) {
 async function startLive() {
   if (state.live) return;
   const ctl = new AbortController(); state.live = { ctl, times: [] };
+  window.m2s2hilLive = { seq: 0, fps: 0, latency_ms: 0, frames: 0 };  // this stream's own count
   $("live-toggle").textContent = "Stop"; $("live-note").textContent = "connecting…";
   try {
     const res = await fetch("/camera/live.mjpeg", { headers: headers(false), signal: ctl.signal });
@@ -359,7 +360,7 @@ async function pollRun() {
   $("run-light").textContent = s.lighting ? `${s.lighting} ${s.elevation ?? ""}` : "–";
   $("run-eta").textContent = s.eta_s == null ? "–" : fmtS(s.eta_s);
   $("run-faults").textContent = String(s.faults.length);
-  const ended = ["completed", "completed_with_gaps", "failed", "aborted", "cancelled"].includes(s.state);
+  const ended = ["completed", "completed_with_gaps", "failed", "aborted", "cancelled", "estopped"].includes(s.state);
   $("run-pause").disabled = ended || s.state !== "running";
   const lens = lensWait(s);
   $("run-reason").textContent = s.pause_reason ? "paused: " + s.pause_reason : "";
@@ -367,7 +368,8 @@ async function pollRun() {
   $("run-lens").hidden = lens === null;
   $("run-lens").textContent = lens === null ? "" : (lens ? "Lens cap is on — continue" : "Lens cap is off — continue");
   $("run-lens").dataset.capped = String(lens);
-  $("run-resume").disabled = (ended && s.state !== "aborted" && !s.resumable) || lens !== null;
+  // resume: a paused session, or one the daemon says can be queued again (interrupted, e-stopped, gaps)
+  $("run-resume").disabled = !(s.state === "paused" || s.resumable) || lens !== null;
   $("run-abort").disabled = ended;
   await fillSheet(id, $("run-sheet"), "sheetN");
   $("run-qc").textContent = String($("run-sheet").querySelectorAll("figure.flagged").length);
@@ -481,7 +483,8 @@ $("white-form").addEventListener("submit", async (ev) => {
 $("phase-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
   const r = await guarded(() => api("POST", "/calibration/phase", { exposure_s: Number($("p-exposure").value) / 1000 }), $("p-result"));
-  if (r) report($("p-result"), `${r.message}\noffset (${r.offset.join(", ")}) · cost at origin ${(100 * r.cost_nominal).toFixed(2)} % · best ${(100 * r.cost_best).toFixed(2)} %`, !r.suspect);
+  // green only for a conclusive match: "inconclusive" is no confirmation
+  if (r) report($("p-result"), `${r.message}\noffset (${r.offset.join(", ")}) · cost at origin ${(100 * r.cost_nominal).toFixed(2)} % · best ${(100 * r.cost_best).toFixed(2)} %`, r.conclusive && !r.suspect);
 });
 
 // ------------------------------------------------------------------ start
