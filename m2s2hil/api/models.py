@@ -12,7 +12,10 @@ SESSION_ID_PATTERN = SESSION_ID_RE.pattern
 
 #: Every state a session can be reported in. Engine states, plus ``queued`` (waiting for
 #: the rig), ``cancelled`` (left the queue before running), ``created`` (accepted, not yet
-#: queued), ``interrupted`` (parked by a daemon shutdown), ``corrupt`` (unreadable journal).
+#: queued), ``interrupted`` (parked by a daemon shutdown), ``corrupt`` (unreadable journal),
+#: ``completed_with_gaps`` (ran to the end, some planned frames skipped and recorded),
+#: ``estopped`` (ended by the emergency stop; resumable once the stop is cleared), ``damaged``
+#: (the journal failed its integrity check; ``m2s2hil sessions repair``).
 SessionState = Literal[
     "created", "queued", "idle", "running", "pausing", "paused", "aborting", "completed", "failed",
     "aborted", "cancelled", "interrupted", "corrupt", "completed_with_gaps", "estopped", "damaged",

@@ -6,7 +6,7 @@ callables the manager registers. Kept to the few series an operator alerts on:
 
 - ``m2s2hil_frames_captured_total``: frames stored by this daemon.
 - ``m2s2hil_faults_total{fault_class}``: faults met, by class (all classes always present).
-- ``m2s2hil_sessions_finished_total{state}``: completed / aborted / failed.
+- ``m2s2hil_sessions_finished_total{state}``: completed / completed_with_gaps / aborted / failed.
 - ``m2s2hil_session_duration_seconds``: histogram of the active time of finished runs
   (engine clock, pauses excluded).
 - ``m2s2hil_queue_depth{queue}``: sessions waiting (``sessions``), frames in the running

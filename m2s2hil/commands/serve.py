@@ -74,7 +74,8 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     cfg = load_rig(settings.rig)
     root_lock = lock_data_root(settings.data_root)  # a second daemon on this root stops here
     log.info("opening rig %r (%s)", cfg.rig.name, settings.rig or "built-in simulated rig")
-    # A device that is missing or does not answer: RigUnavailable, one line naming it (exit 1).
+    # A device that cannot be opened: RigOpenError, one line naming it, the port and the cause
+    # (exit 6 unreachable, 7 unusable: m2s2hil.rig.open_errors); anything else RigUnavailable (exit 1).
     rig = open_capture_rig(cfg, realtime=settings.realtime, seed=settings.seed,
                            source=str(settings.rig) if settings.rig is not None else None)
     try:

@@ -3,7 +3,7 @@
 The engine thread builds each frame's metadata (:meth:`FrameStages.meta`) and the simulator's
 truth, then hands a :class:`CapturedFrame` to the :class:`~m2s2hil.engine.pipeline.Pipeline`, whose
 threads run :meth:`FrameStages.process` (dark subtraction + demosaicing with
-``processing.pipeline.FrameProcessor``, one per master dark; then the QC hook; then an RGB
+``processing.chain.FrameProcessor``, one per master dark; then the QC hook; then an RGB
 preview) and :meth:`FrameStages.write` (``store.write_frame``).
 
 Frame metadata (``meta`` of each stored frame): ``exposure_s`` and ``gain`` as the camera

@@ -1,4 +1,5 @@
-"""Export a session in the published M2S2 layout or as a Hugging Face image folder.
+"""Export a session in the published M2S2 layout, as a Hugging Face dataset (Parquet with the exact
+raw values, m2s2hil.store.export_hf) or as a Zarr store (m2s2hil.store.zarr_export).
 
 ``layout="m2s2"`` writes, under ``out``:
 
