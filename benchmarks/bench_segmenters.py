@@ -3,6 +3,10 @@ it segments, and what it costs (results: docs/evaluation.md, "How many materials
 
     .venv/bin/python benchmarks/bench_segmenters.py frames   # simulate the frames (cached as .npz)
     .venv/bin/python benchmarks/bench_segmenters.py run      # evaluate every candidate, write table + chart
+    # the real resolution (512² cubes), one azimuth, old and new default only:
+    .venv/bin/python benchmarks/bench_segmenters.py frames --size 2048 --azimuths 30
+    .venv/bin/python benchmarks/bench_segmenters.py run --size 2048 --out bench-out/segmenters-2048 \
+        --only "BIC, all pixels (old default)" --only "+ brightness feature, merge 1.5° (new default)"
 
 Frames: ``analysis.simframes.simulated_frames`` (the simulator's frame source with its ground
 truth) for every satellite × build × lighting × tilt of the catalog (3 × 3 × 3 × 3 = 81 scenes) at
@@ -26,14 +30,14 @@ import numpy as np
 DEFAULT_CACHE = Path("bench-out/segmenter-frames")  # one folder per sensor size below it
 
 
-def cache_frames(folder: Path, size: int) -> int:
+def cache_frames(folder: Path, size: int, azimuths: tuple[float, ...] = (30.0, 200.0)) -> int:
     """Render the frames missing from ``folder`` (one .npz each); returns how many were rendered."""
     from m2s2hil.analysis.simframes import simulated_frames, visible_materials
 
     folder.mkdir(parents=True, exist_ok=True)
     have = [p.stem for p in folder.glob("*.npz")]
     n = 0
-    for f in simulated_frames(size=size, skip=have):
+    for f in simulated_frames(size=size, azimuths=azimuths, skip=have):
         np.savez_compressed(folder / f"{f.name}.npz", cube=f.cube, gt=f.gt.astype(np.uint8),
                             materials=np.array(f.materials), exposure_s=f.exposure_s)
         print(f"{f.name}: {f.exposure_s * 1e3:.2f} ms, visible {visible_materials(f.gt)}", flush=True)
@@ -201,12 +205,14 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--only", action="append", help="candidate name (repeatable)")
+    ap.add_argument("--azimuths", type=float, nargs="+", default=[30.0, 200.0],
+                    help="turntable angles rendered by `frames` (default 30 200)")
     ap.add_argument("--out", type=Path, default=Path("bench-out/segmenters"))
     args = ap.parse_args()
     cache = args.cache / str(args.size)
     if args.what == "frames":
         t0 = time.perf_counter()
-        n = cache_frames(cache, args.size)
+        n = cache_frames(cache, args.size, tuple(args.azimuths))
         print(f"{n} frames rendered in {time.perf_counter() - t0:.0f} s")
         return
     from m2s2hil.hostinfo import describe_machine
@@ -218,7 +224,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     side = frames[0]["cube"].shape[1]
     title = (f"Model selection on {len(frames)} simulated frames (3 satellites × 3 builds × 3 lightings × "
-             f"3 tilts × {len(frames) // 81} azimuths, {side}² cubes); dashed: targets")
+             f"3 tilts × {max(1, len(frames) // 81)} azimuth(s), {side}² cubes); dashed: targets")
     (args.out / "segmenters.json").write_text(json.dumps(rows, indent=2) + "\n")
     (args.out / "segmenters.md").write_text(f"{describe_machine()}\n\n{markdown(rows)}\n")
     chart(rows, args.out / "segmenters.png", title)

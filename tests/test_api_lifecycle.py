@@ -15,7 +15,7 @@ import httpx
 import pytest
 from api_support import free_port
 
-from m2s2hil.api.manager import RootLocked, lock_data_root
+from m2s2hil.api.rootlock import RootLocked, lock_data_root
 from m2s2hil.config import load_rig
 from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
 from m2s2hil.store.session import SessionStore

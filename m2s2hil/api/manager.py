@@ -52,22 +52,15 @@ from m2s2hil.rig.opened import Rig
 from m2s2hil.store.session import SessionStore, list_sessions
 
 from . import estop, listing
-from .admission import check_room, check_sweep, planned_frame_count
+from .admission import check_room, check_sweep
 from .engine_requests import Action, request, wait_safe_boundary
-from .errors import Conflict, PlanTooLarge, QueueFull, UnknownSession
+from .errors import Conflict, QueueFull, UnknownSession
 from .estop import SafeCheck, make_safe
 from .jobqueue import Job, JobQueue
 from .prometheus import Metrics
 from .rigstate import device_states
-from .rootlock import LOCK_NAME, RootLocked, lock_data_root, unlock_data_root
-from .status import RESUMABLE, RESUMABLE_BY_HAND, TERMINAL, disk_status, engine_status, queued_status
-
-# Names other modules import from here (they predate the split into modules).
-__all__ = [
-    "LOCK_NAME", "RESUMABLE", "RESUMABLE_BY_HAND", "TERMINAL", "Action", "Conflict", "Job", "PlanTooLarge",
-    "QueueFull", "RootLocked", "SafeCheck", "SessionManager", "UnknownSession", "lock_data_root",
-    "planned_frame_count",
-]
+from .rootlock import lock_data_root, unlock_data_root
+from .status import RESUMABLE_BY_HAND, TERMINAL, disk_status, engine_status, queued_status
 
 log = logging.getLogger(__name__)
 S = RunState

@@ -61,7 +61,8 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     import uvicorn
 
     from m2s2hil.api.app import create_app
-    from m2s2hil.api.manager import SessionManager, lock_data_root
+    from m2s2hil.api.manager import SessionManager
+    from m2s2hil.api.rootlock import lock_data_root
     from m2s2hil.api.security import check_listen
     from m2s2hil.config import load_rig
     from m2s2hil.engine.build import open_capture_rig
