@@ -174,15 +174,17 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def chart(rows: list[dict[str, Any]], path: Path, title: str) -> None:
+    from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    colours = colormaps["tab20"]
     fig = Figure(figsize=(11.0, 4.6))
     for k, (key, label) in enumerate((("exact", "K exact (share of images)"),
                                       ("within_1", "K within ±1 (share of images)"), ("dice", "macro Dice"))):
         ax = fig.add_subplot(1, 3, k + 1)
         for i, r in enumerate(rows):
-            ax.scatter(r["s_per_image"], r[key], s=36, marker="os^Dv<>ph*X"[i % 11],
+            ax.scatter(r["s_per_image"], r[key], s=36, marker="os^Dv<>ph*X"[i % 11], color=colours(i % 20),
                        label=r["candidate"] if k == 0 else None)
         ax.set_xscale("log")
         ax.set_xlabel("s per image (median, 1 thread)")
@@ -201,13 +203,14 @@ def chart(rows: list[dict[str, Any]], path: Path, title: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("what", choices=("frames", "run"))
+    ap.add_argument("what", choices=("frames", "run", "chart"))
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--only", action="append", help="candidate name (repeatable)")
     ap.add_argument("--azimuths", type=float, nargs="+", default=[30.0, 200.0],
                     help="turntable angles rendered by `frames` (default 30 200)")
     ap.add_argument("--out", type=Path, default=Path("bench-out/segmenters"))
+    ap.add_argument("--title", help="chart title for `chart`")
     args = ap.parse_args()
     cache = args.cache / str(args.size)
     if args.what == "frames":
@@ -217,6 +220,10 @@ def main() -> None:
         return
     from m2s2hil.hostinfo import describe_machine
 
+    if args.what == "chart":  # redraw from a previous run's segmenters.json
+        rows = json.loads((args.out / "segmenters.json").read_text())
+        chart(rows, args.out / "segmenters.png", args.title or "Model selection")
+        return
     frames = load_frames(cache)
     if not frames:
         raise SystemExit(f"no frames in {cache}: run `frames --size {args.size}` first")

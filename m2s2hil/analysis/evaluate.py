@@ -275,7 +275,7 @@ def evaluate_jobs(
             records = map_ordered(
                 evaluate_job, list(jobs), client=client, on_result=on_result, options=options
             )
-    bands_nm = next((j.camera.get("bands_nm") for j in jobs if j.camera.get("bands_nm")), ())
+    bands_nm: Sequence[float] = next((j.camera["bands_nm"] for j in jobs if j.camera.get("bands_nm")), ())
     bands = band_report(records, options, bands_nm)
     return EvaluationResult(records, options, list(sources), time.perf_counter() - t0, compute, bands)
 
