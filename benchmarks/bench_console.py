@@ -29,7 +29,7 @@ import httpx
 import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from browser_support import CHROMIUM_ARGS, chromium_path
+from browser_support import CHROMIUM_ARGS, chromium_path, start_session_from_form
 
 from m2s2hil.hostinfo import describe_machine
 
@@ -94,12 +94,7 @@ def screenshots(page, base: str, out: Path) -> None:
     page.select_option("#f-sat", "voyager")
     page.dispatch_event("#f-sat", "change")
     page.select_option("#f-build", "B3")
-    for e in ("E0", "E2"):
-        page.uncheck(f"#f-tilts input[value='{e}']")
-    page.fill("#f-step", "45")
-    page.dispatch_event("#f-step", "change")
-    page.wait_for_function("document.getElementById('estimate').textContent.includes('8 frames')")
-    page.click("#start")
+    start_session_from_form(page, tilts=("E1",), step_deg=45, frames=8)
     page.wait_for_function("document.querySelectorAll('#run-sheet img[src^=\"blob:\"]').length >= 3",
                            timeout=120000)
     page.screenshot(path=str(out / "console_sessions.png"))
@@ -125,10 +120,7 @@ def screenshots(page, base: str, out: Path) -> None:
     page.wait_for_function("document.getElementById('p-result').textContent.length > 0", timeout=60000)
     page.screenshot(path=str(out / "console_calibration.png"))
     # the emergency stop during a session
-    page.click("#tabs button[data-view='sessions']")
-    page.fill("#f-step", "10")
-    page.dispatch_event("#f-step", "change")
-    page.click("#start")
+    start_session_from_form(page, tilts=("E1",), step_deg=10)
     page.wait_for_function("document.getElementById('run-state').textContent === 'running'", timeout=60000)
     time.sleep(3)
     page.keyboard.press("Escape")

@@ -37,3 +37,19 @@ def browser() -> Iterator[Any]:
             yield b
         finally:
             b.close()
+
+
+def start_session_from_form(page: Any, *, tilts: tuple[str, ...] = ("E1",), step_deg: int = 90,
+                            frames: int | None = None) -> None:
+    """In the console's Sessions view: keep only ``tilts`` ticked, set the azimuth step, wait for
+    the form's estimate (``frames`` frames when given) and start the session."""
+    page.click("#tabs button[data-view='sessions']")
+    page.wait_for_function("document.querySelectorAll('#f-tilts input').length > 0")
+    for box in page.query_selector_all("#f-tilts input"):
+        if (box.get_attribute("value") in tilts) != box.is_checked():
+            box.click()
+    page.fill("#f-step", str(step_deg))
+    page.dispatch_event("#f-step", "change")
+    if frames is not None:
+        page.wait_for_function(f"document.getElementById('estimate').textContent.includes('{frames} frames')")
+    page.click("#start")

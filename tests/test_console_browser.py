@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from api_support import TOKEN, daemon, uvicorn_thread
-from browser_support import browser
+from browser_support import browser, start_session_from_form
 
 from m2s2hil.api import create_app
 
@@ -73,13 +73,7 @@ def test_console_end_to_end(tmp_path: Path) -> None:
         page.click("#live-toggle")  # stop the live view
 
         # a session from the form: estimate, start, progress, contact sheet
-        page.click("#tabs button[data-view='sessions']")
-        for e in ("E0", "E2"):
-            page.uncheck(f"#f-tilts input[value='{e}']")
-        page.fill("#f-step", "90")
-        page.dispatch_event("#f-step", "change")
-        page.wait_for_function("document.getElementById('estimate').textContent.includes('4 frames')")
-        page.click("#start")
+        start_session_from_form(page, tilts=("E1",), step_deg=90, frames=4)
         page.wait_for_function("document.getElementById('run-state').textContent === 'completed'",
                                timeout=60000)
         page.wait_for_function("document.querySelectorAll('#run-sheet img[src^=\"blob:\"]').length === 4")
@@ -98,12 +92,7 @@ def test_console_end_to_end(tmp_path: Path) -> None:
         page.screenshot(path=str(shots / "console_browser.png"))
 
         # emergency stop from the keyboard during a session
-        page.click("#tabs button[data-view='sessions']")
-        for e in ("E0", "E2"):
-            page.check(f"#f-tilts input[value='{e}']")
-        page.fill("#f-step", "10")
-        page.dispatch_event("#f-step", "change")
-        page.click("#start")
+        start_session_from_form(page, tilts=("E0", "E1", "E2"), step_deg=10)
         page.wait_for_function("['running'].includes(document.getElementById('run-state').textContent)")
         sid2 = page.inner_text("#run-id")
         page.keyboard.press("Escape")

@@ -291,7 +291,7 @@ def test_dark_needed_mid_unit_is_capped_and_the_unit_captured_again(tmp_path):
 @pytest.mark.slow
 def test_console_shows_the_wait_and_confirms_the_lens(tmp_path):
     """The console's Sessions view: the pause reason and one button per confirmation."""
-    from tests.browser_support import browser
+    from browser_support import browser, start_session_from_form
 
     rig = as_real(open_simulated_rig(api_support.small_rig_config()))
     try:
@@ -302,14 +302,7 @@ def test_console_shows_the_wait_and_confirms_the_lens(tmp_path):
             errors: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
             page.goto(base + "/")
-            page.click("#tabs button[data-view='sessions']")
-            page.wait_for_function("document.querySelectorAll('#f-tilts input').length > 0")
-            for e in ("E0", "E2"):
-                page.uncheck(f"#f-tilts input[value='{e}']")
-            page.fill("#f-step", "90")
-            page.dispatch_event("#f-step", "change")
-            page.wait_for_function("document.getElementById('estimate').textContent.includes('4 frames')")
-            page.click("#start")
+            start_session_from_form(page, tilts=("E1",), step_deg=90, frames=4)
             lens_button = "(b => !b.hidden && b.textContent === '{}')(document.getElementById('run-lens'))"
             page.wait_for_function(lens_button.format("Lens cap is on — continue"), timeout=30000)
             assert LENS_CAP_REASON in page.inner_text("#run-reason")
