@@ -40,10 +40,9 @@ def simulate_session(
     hook, or None. Returns the session folder."""
     from m2s2hil.analysis.qc import capture_qc_hook
     from m2s2hil.config import default_rig, parse_rig
-    from m2s2hil.engine.runner import Engine
+    from m2s2hil.engine.build import build_run
     from m2s2hil.plan import Sweep
     from m2s2hil.rig.factory import open_simulated_rig
-    from m2s2hil.store.session import SessionStore
 
     data = default_rig().model_dump(mode="json")
     data["camera"]["model"].update(width=int(size), height=int(size))
@@ -62,9 +61,11 @@ def simulate_session(
     hook = capture_qc_hook() if qc is True else (qc or None)
     rig = open_simulated_rig(cfg, seed=seed)
     try:
-        store = SessionStore.create(root, sweep, cfg, session_id=session_id, clock=rig.clock)
-        with store:
-            Engine(rig, store, sweep, qc=hook).run()
+        # the one builder of a run, as capture and the daemon use it
+        engine = build_run(rig, root, sweep=sweep, session_id=session_id, qc=hook,
+                           capture_qc=hook is not None)
+        with engine.store as store:
+            engine.run()
             return Path(store.path)
     finally:
         rig.close()
