@@ -68,6 +68,10 @@ class Camera(Protocol):
 
     name: str
 
+    @property
+    def serial(self) -> str | None:
+        """The device's serial number, when it reports one (recorded with the darks)."""
+
     def configure(self, *, exposure_s: float | None = None, gain: float | None = None) -> None: ...
 
     def snap(self, timeout: float | None = None) -> Frame:

@@ -146,7 +146,7 @@ class SessionDarks:
                 self.ops.lens_capped = False
         master = build_master_dark(
             [f.data for f in frames], reduce=self.sweep.dark.reduce, exposure_s=ev.exposure_s, gain=ev.gain,
-            temperature_c=[f.temperature_c for f in frames], camera=getattr(cam, "serial", None) or cam.name,
+            temperature_c=[f.temperature_c for f in frames], camera=cam.serial or cam.name,
             tolerance_c=self.rig.config.processing.dark_temperature_tolerance_c,
         )
         del frames
