@@ -12,6 +12,7 @@ import os
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 from api_support import TOKEN, daemon, uvicorn_thread
 from browser_support import browser, start_session_from_form
@@ -61,6 +62,12 @@ def test_console_end_to_end(tmp_path: Path) -> None:
         first = page.evaluate("window.m2s2hilLive.seq")
         page.wait_for_function(f"window.m2s2hilLive.seq > {first}", timeout=30000)
         assert page.locator("#st-sat").inner_text().endswith("%")
+        # the turntable-axis overlay follows the operator's setting (it travels with the frames)
+        page.fill("#live-axis", "0.4")
+        page.dispatch_event("#live-axis", "change")
+        # (read from the served app: each app keeps its own live view)
+        wait_for(lambda: httpx.get(base + "/camera/live").json()["settings"]["axis_x"] == 0.4,
+                 what="the axis setting")
 
         # jog: the simulated stage moves (read back through GET /rig)
         before = stage_deg(d, "turntable")

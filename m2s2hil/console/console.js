@@ -270,9 +270,9 @@ $("live-toggle").addEventListener("click", () => (state.live ? stopLive() : star
 async function liveSettings() {
   const v = $("live-view").value;
   await guarded(() => api("PUT", "/camera/live", { exposure_s: Number($("live-exposure").value) / 1000,
-    gain: Number($("live-gain").value), view: v === "rgb" ? "rgb" : Number(v) }));
+    gain: Number($("live-gain").value), view: v === "rgb" ? "rgb" : Number(v), axis_x: Number($("live-axis").value) }));
 }
-for (const id of ["live-view", "live-exposure", "live-gain"]) $(id).addEventListener("change", liveSettings);
+for (const id of ["live-view", "live-exposure", "live-gain", "live-axis"]) $(id).addEventListener("change", liveSettings);
 
 // ------------------------------------------------------------------ snapshots
 $("snap").addEventListener("click", async () => {
@@ -495,6 +495,11 @@ async function init() {
   if (!cat) return;
   if (!state.catalog) { state.catalog = cat; buildForm(cat); }
   const live = await guarded(() => api("GET", "/camera/live"));
+  if (live) {
+    $("live-exposure").value = String(live.settings.exposure_s * 1000);
+    $("live-gain").value = String(live.settings.gain);
+    $("live-axis").value = String(live.settings.axis_x);
+  }
   if (live && $("live-view").options.length === 1) {
     live.bands_nm.forEach((nm, i) => { const o = el("option", nm + " nm"); o.value = String(i); $("live-view").append(o); });
   }
