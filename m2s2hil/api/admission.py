@@ -52,11 +52,9 @@ def estimate_bytes(sweep: Sweep, cfg: RigConfig, frames: int) -> int:
         m.width * m.height * 4 + 65536)
 
 
-def check_sweep(sweep: Sweep, cfg: RigConfig, max_plan_frames: int, root: Path | None = None
-                ) -> tuple[int, int]:
-    """(planned events, bytes the session will need); :class:`PlanTooLarge`, ``UsageError``,
-    :class:`DiskFull` (when ``root`` is given and lacks the room) or ``PlanError`` (the rig
-    cannot do it) otherwise. Everything but the last is decided before expanding."""
+def check_size(sweep: Sweep, max_plan_frames: int) -> int:
+    """The frames a sweep asks for, counted without expanding it; :class:`PlanTooLarge` above
+    ``max_plan_frames``. Every endpoint that expands a plan asks this first."""
     n = planned_frame_count(sweep)
     if n > max_plan_frames:
         shown = "too many" if math.isinf(n) else f"{int(n)}"
@@ -64,11 +62,20 @@ def check_sweep(sweep: Sweep, cfg: RigConfig, max_plan_frames: int, root: Path |
             f"the sweep asks for {shown} frames; this daemon accepts at most {max_plan_frames} "
             "per session (raise azimuth_step_deg, or lower frames_per_pose, lighting or tilts)"
         )
+    return int(n)
+
+
+def check_sweep(sweep: Sweep, cfg: RigConfig, max_plan_frames: int, root: Path | None = None
+                ) -> tuple[int, int]:
+    """(planned events, bytes the session will need); :class:`PlanTooLarge`, ``UsageError``,
+    :class:`DiskFull` (when ``root`` is given and lacks the room) or ``PlanError`` (the rig
+    cannot do it) otherwise. Everything but the last is decided before expanding."""
+    n = check_size(sweep, max_plan_frames)
     try:
         check_method(sweep.processing)
     except UsageError as exc:
         raise UsageError(f"body.processing: {exc}") from None
-    need = estimate_bytes(sweep, cfg, int(n))
+    need = estimate_bytes(sweep, cfg, n)
     if root is not None:
         check_room(root, need)
     with EXPANDING:

@@ -22,10 +22,9 @@ from m2s2hil.rig.calibrate import (
 )
 
 from . import console_models as cm
-from .admission import EXPANDING, planned_frame_count
+from .admission import EXPANDING, check_size
 from .common import CONFLICT, CROSS_SITE, Manager
 from .console_state import ConsoleDep, check_camera_range, device_errors
-from .errors import PlanTooLarge
 
 router = APIRouter(tags=["calibration"])
 
@@ -61,9 +60,7 @@ def take_darks(mg: Manager, console: ConsoleDep, body: cm.DarksIn) -> dict[str, 
         if body.exposures:
             pairs = [(e.exposure_s, e.gain) for e in body.exposures]
         elif body.plan is not None:
-            if planned_frame_count(body.plan) > mg.max_plan_frames:  # before expanding it
-                raise PlanTooLarge(f"body.plan: more than {mg.max_plan_frames} frames; the darks of a plan "
-                                   "this daemon would run are wanted")
+            check_size(body.plan, mg.max_plan_frames)  # before expanding it
             with EXPANDING:
                 pairs = sweep_exposures(body.plan, rig)
             check_camera_range(pairs)
@@ -79,20 +76,12 @@ def take_white(mg: Manager, console: ConsoleDep, body: cm.WhiteIn) -> dict[str, 
     it to the calibration file; a failed check (422) writes nothing."""
     if not mg.rig.simulated and not body.panel_in_place:
         raise UsageError("body.panel_in_place: put the white panel in view and confirm it")
-    world = mg.rig.world
     with mg.manual_access("the white reference") as rig, device_errors("the white reference"):
         console.camera.release(rig)
-        if world is not None:
-            world.set_target("white_panel")
-        try:
-            _, prov = capture_white_reference(
-                rig, console.calibration_path, exposure_s=body.exposure_s, gain=body.gain,
-                n_frames=body.n_frames, reflectance=body.reflectance, lighting=body.lighting,
-                library=console.darks)
-        finally:
-            if world is not None:
-                world.set_target("mockup")
-            rig.lights.set(())
+        _, prov = capture_white_reference(
+            rig, console.calibration_path, exposure_s=body.exposure_s, gain=body.gain,
+            n_frames=body.n_frames, reflectance=body.reflectance, lighting=body.lighting,
+            library=console.darks)
     hint = None if console.manager.rig.config.camera.calibration_file is not None else (
         f"the rig file names no calibration file: add calibration_file = \"{console.calibration_path}\" "
         "under [camera] so sessions use it")

@@ -11,7 +11,6 @@ emergency stop or jog buttons.
 
 from __future__ import annotations
 
-import math
 from importlib import resources
 from typing import Any, Literal
 
@@ -22,9 +21,8 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.plan import Sweep, estimate, estimate_continuous
 
 from . import console_models as cm
-from .admission import EXPANDING, estimate_bytes, planned_frame_count
+from .admission import EXPANDING, check_size, estimate_bytes
 from .common import CROSS_SITE, Manager
-from .errors import PlanTooLarge
 
 open_router = APIRouter(tags=["console"])
 router = APIRouter(tags=["console"])
@@ -65,10 +63,7 @@ def estimate_plan(mg: Manager, sweep: Sweep = Body(...)) -> dict:
     its lower bound, disk space. Nothing is created. The same limits as POST /sessions apply,
     checked before the plan is expanded."""
     cfg = mg.rig.config
-    n = planned_frame_count(sweep)
-    if n > mg.max_plan_frames:
-        raise PlanTooLarge(f"the sweep asks for {'too many' if math.isinf(n) else int(n)} frames; this "
-                           f"daemon accepts at most {mg.max_plan_frames} per session")
+    check_size(sweep, mg.max_plan_frames)
     with EXPANDING:
         events = sweep.expand(cfg)
         est = (estimate_continuous(sweep, cfg, radius_px=400.0, events=events).as_plan_estimate()

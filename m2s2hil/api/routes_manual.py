@@ -16,6 +16,7 @@ from fastapi import APIRouter, HTTPException, Path
 
 from m2s2hil.errors import UsageError
 from m2s2hil.rig.manual import ManualControl
+from m2s2hil.rig.opened import Rig
 
 from . import console_models as cm
 from .common import CONFLICT, CROSS_SITE, MARKED, Manager
@@ -77,11 +78,11 @@ def get_axes(mg: Manager) -> dict:
             "presets": {k: list(v) for k, v in cfg.lighting.items()}}
 
 
-def _moved(mg: Manager, role: AxisName, target: float) -> dict:
-    with mg.manual_access() as rig, device_errors(f"reading the {role}"):
-        ax = rig.axis(role)
-        return {"axis": role, "target_deg": target, "position_deg": float(ax.position()),
-                "moving": bool(ax.is_moving())}
+def _moved(rig: Rig, role: AxisName, target: float) -> dict:
+    """The answer to a move just commanded: its target and the axis's read-back (same lock)."""
+    ax = rig.axis(role)
+    return {"axis": role, "target_deg": target, "position_deg": float(ax.position()),
+            "moving": bool(ax.is_moving())}
 
 
 @router.post("/rig/axes/{axis}/jog", status_code=202, response_model=cm.MoveOut,
@@ -90,8 +91,9 @@ def jog(mg: Manager, body: cm.Jog, axis: AxisName = AxisPath) -> dict:
     """Move by ``delta_deg`` from the axis's read-back position (refused beyond the soft limits)."""
     with mg.manual_access() as rig, device_errors(f"jogging the {axis}"):
         target = ManualControl(rig).jog(axis, body.delta_deg)
+        moved = _moved(rig, axis, target)
     log.info("manual: %s jog %+.3f° → %.3f°", axis, body.delta_deg, target)
-    return _moved(mg, axis, target)
+    return moved
 
 
 @router.post("/rig/axes/{axis}/goto", status_code=202, response_model=cm.MoveOut,
@@ -100,8 +102,9 @@ def go_to(mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
     """Move to ``position_deg`` (refused beyond the soft limits)."""
     with mg.manual_access() as rig, device_errors(f"moving the {axis}"):
         target = ManualControl(rig).go_to(axis, body.position_deg)
+        moved = _moved(rig, axis, target)
     log.info("manual: %s go to %.3f°", axis, target)
-    return _moved(mg, axis, target)
+    return moved
 
 
 @router.post("/rig/axes/{axis}/stop", response_model=cm.MoveOut, responses={**CONFLICT, **CROSS_SITE},

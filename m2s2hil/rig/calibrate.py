@@ -138,7 +138,22 @@ def capture_white_reference(
     """Average ``n_frames`` of the white panel, subtract a dark at the same setting (from
     ``library`` when it has one within tolerance, else taken now with the lens capped), check,
     and write the calibration file (keeping its layout and crosstalk). Returns the check and the
-    provenance written; raises :class:`CalibrationCaptureError` when a check fails."""
+    provenance written; raises :class:`CalibrationCaptureError` when a check fails. The panel is
+    in view and the preset's lamps on only during the capture."""
+    rig.show_white_panel(True)
+    try:
+        return _capture_white(rig, calibration_path, exposure_s=exposure_s, gain=gain, n_frames=n_frames,
+                              reflectance=reflectance, lighting=lighting, library=library)
+    finally:
+        rig.show_white_panel(False)
+        if lighting is not None:
+            rig.lights.set(())
+
+
+def _capture_white(
+    rig: Rig, calibration_path: Path, *, exposure_s: float, gain: float, n_frames: int,
+    reflectance: float | list[float], lighting: str | None, library: DarkLibrary | None,
+) -> tuple[WhiteCheck, dict[str, Any]]:
     model = rig.config.camera.model
     if lighting is not None:
         if lighting not in rig.config.lighting:

@@ -126,11 +126,7 @@ def _open_axes(name: str, dev: DeviceConfig, config: RigConfig, clock: Clock) ->
             dev.port, device=name, baudrate=dev.baudrate, timeout_s=dev.timeout_s, clock=clock,
             retries=dev.retries,
         )
-        try:
-            ctl.connect()
-        except BaseException:
-            ctl.close()  # free the port before anyone (open_errors.identify_port) looks at it
-            raise
+        _connect_or_close(ctl)
         out = {
             role: ctl.axis(
                 ax.axis, name=role, units_per_degree=ax.units_per_degree, min_deg=ax.min_deg,
@@ -166,12 +162,18 @@ def _open_lights(name: str, dev: DeviceConfig, clock: Clock) -> Any:
             dev.port, device=name, baudrate=dev.baudrate, timeout_s=dev.timeout_s, clock=clock,
             retries=dev.retries,
         )
-    try:
-        board.connect()
-    except BaseException:
-        board.close()
-        raise
+    _connect_or_close(board)
     return board
+
+
+def _connect_or_close(driver: Any) -> None:
+    """Connect, or close the port again before the error leaves: anyone looking at the port next
+    (:func:`m2s2hil.rig.open_errors.identify_port`, a retry) finds it free."""
+    try:
+        driver.connect()
+    except BaseException:
+        driver.close()
+        raise
 
 
 def open_rig(

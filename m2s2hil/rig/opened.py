@@ -130,6 +130,12 @@ class Rig:
         elif self.world is not None:
             self.world.set_lens_cap(on)
 
+    def show_white_panel(self, on: bool) -> None:
+        """Hold the white calibration panel in view, or take it away. A simulated rig shows its
+        own panel target (:mod:`m2s2hil.simulators.targets`); on a real rig the operator does."""
+        if self.world is not None:
+            self.world.set_target("white_panel" if on else "mockup")
+
     def mount(self, satellite: str, build: str) -> None:
         """Tell the simulated world which mockup is on the turntable (a no-op on the bench)."""
         if self.world is not None:
