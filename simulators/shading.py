@@ -120,9 +120,9 @@ def light_frame(l_dir: np.ndarray) -> np.ndarray:
 @njit(cache=True, nogil=True, fastmath=True)
 def _shade_rows(
     label, depth, nrm, cx, cy, scale,
-    ldirs, lirr, lgloss, lshadow, ambient, bg_irr,
+    ldirs, lirr, lhalf, lshadow, lexp, lnorm, ambient, bg_irr,
     smap, lmat, scx, scy, sscale, has_shadow,
-    rho, spec, shin, band_gain, layout,
+    rho, spec, band_gain, layout,
     out_d, out_s, out_rate, r0, r1,
 ):  # pragma: no cover
     _h, w = label.shape
@@ -167,29 +167,22 @@ def _shade_rows(
                         lit_by_spot = 0.0
             d = ambient
             s = 0.0
-            sh_l = shin[lab]
             for k in range(nl):
-                lxk = ldirs[k, 0]
-                lyk = ldirs[k, 1]
-                lzk = ldirs[k, 2]
-                ndl = px * lxk + py * lyk + pz * lzk
+                ndl = px * ldirs[k, 0] + py * ldirs[k, 1] + pz * ldirs[k, 2]
                 if ndl <= 0.0:
                     continue
                 vis = lit_by_spot if lshadow[k] else 1.0
                 if vis == 0.0:
                     continue
                 d += lirr[k] * ndl
-                # Blinn-Phong half vector with the view direction (0, 0, 1).
-                hx = lxk
-                hy = lyk
-                hz = lzk + 1.0
-                hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-                ndh = (px * hx + py * hy + pz * hz) / hn
+                # Blinn-Phong: lhalf is the unit half vector of light k and the view (0, 0, 1).
+                ndh = px * lhalf[k, 0] + py * lhalf[k, 1] + pz * lhalf[k, 2]
                 if ndh > 0.0:
-                    e = sh_l * lgloss[k]
+                    e = lexp[lab, k]
                     # Schlick's rational approximation of ndh**e (no transcendental); a broad
-                    # source spreads the same highlight energy over a wider, lower lobe.
-                    s += lirr[k] * (e + 2.0) / (sh_l + 2.0) * ndh / (e - e * ndh + ndh)
+                    # source spreads the same highlight energy over a wider, lower lobe
+                    # (lnorm = irradiance · (e + 2) / (shininess + 2)).
+                    s += lnorm[lab, k] * ndh / (e - e * ndh + ndh)
             out_d[y, x] = d
             out_s[y, x] = s
             out_rate[y, x] = band_gain[b] * (rho[lab, b] * d + spec[lab, b] * s)
@@ -219,14 +212,21 @@ def shade(
         has = True
     layout = np.ascontiguousarray(layout, dtype=np.int64)
     cx, cy = centre
+    # What depends only on the light (and the material) is worked out once, not per pixel.
+    dirs = np.ascontiguousarray(lights.dirs, dtype=np.float64).reshape(-1, 3)
+    half = dirs + np.array([0.0, 0.0, 1.0])
+    half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-300)
+    shin64 = np.asarray(shin, dtype=np.float64)
+    lexp = np.ascontiguousarray(shin64[:, None] * lights.gloss[None, :])
+    lnorm = np.ascontiguousarray(lights.irradiance[None, :] * (lexp + 2.0) / (shin64[:, None] + 2.0))
 
     def run(r0: int, r1: int) -> None:
         _shade_rows(
             label, depth, nrm, float(cx), float(cy), float(scale),
-            lights.dirs, lights.irradiance, lights.gloss, lights.shadowed,
+            dirs, lights.irradiance, half, lights.shadowed, lexp, lnorm,
             float(lights.ambient), float(bg_irr),
             smap, np.ascontiguousarray(lmat, dtype=np.float64), float(scx), float(scy), float(sscale), has,
-            rho, spec, shin, band_gain, layout, out_d, out_s, out_rate, r0, r1,
+            rho, spec, band_gain, layout, out_d, out_s, out_rate, r0, r1,
         )
 
     split_rows(run, h, threads)

@@ -49,9 +49,16 @@ def test_create_run_and_read_back(d) -> None:
     arr, desc = decode_tiff(raw.content)
     assert desc["session_id"] == sid and desc["event"]["index"] == item["n"]
     assert arr.shape == (256, 256) and arr.dtype == np.uint16
-    png = d.client.get(item["preview_url"])
+    jpg = d.client.get(item["preview_url"])  # the stored quick-look, as stored: JPEG
+    assert jpg.status_code == 200 and jpg.headers["content-type"] == "image/jpeg"
+    assert hashlib.sha256(jpg.content).hexdigest() == item["files"]["preview"]["sha256"]
+    assert Image.open(io.BytesIO(jpg.content)).format == "JPEG"
+    png = d.client.get(f"{item['preview_url']}.png")  # and as PNG for clients that want one
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
-    assert Image.open(io.BytesIO(png.content)).mode == "RGB"
+    as_png = Image.open(io.BytesIO(png.content))
+    assert as_png.mode == "RGB" and as_png.format == "PNG"
+    diff = np.asarray(as_png).astype(int) - np.asarray(Image.open(io.BytesIO(jpg.content)))
+    assert np.abs(diff).max() <= 2  # the same JPEG, decoded by OpenCV then Pillow
 
     # pagination and a second look from the journal (as after a daemon restart)
     page = d.client.get(f"/sessions/{sid}/frames", params={"offset": 1, "limit": 2}).json()

@@ -19,7 +19,7 @@ from m2s2hil.engine.state import (
     SessionFinished,
     StateChanged,
 )
-from m2s2hil.store.frame_files import decode_png
+from m2s2hil.store.frame_files import decode_image
 
 S = RunState
 
@@ -52,7 +52,7 @@ def test_session_end_to_end(tmp_path) -> None:
             assert m["rig_digest"] == cfg.digest and isinstance(m["block_id"], int)
             assert m["timestamp"] > 1e9 and m["clock_s"] > 0
             # the simulator's ground truth travels with the frame
-            labels = decode_png(store.read_file(f.files["truth_labels"]))
+            labels = decode_image(store.read_file(f.files["truth_labels"]))
             assert labels.shape == (cfg.camera.model.height, cfg.camera.model.width)
             assert labels.max() > 0 and m["truth"]["class_names"][0] == "background"
             assert m["truth"]["azimuth_deg"] == pytest.approx(ev.azimuth_deg, abs=0.1)

@@ -103,7 +103,7 @@ def _processor(job: FrameJob, method: str, shape: tuple[int, int] | None = None)
 
 def load_cube(job: FrameJob, reprocess: str | None = None) -> np.ndarray:
     """The image's float32 cube (bands, H, W): stored, or processed from the raw."""
-    from m2s2hil.store.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_image
 
     if job.cube is not None and reprocess is None:
         cube, _ = decode_tiff(_read(job.cube))
@@ -112,7 +112,7 @@ def load_cube(job: FrameJob, reprocess: str | None = None) -> np.ndarray:
         raise EvaluationError(f"{job.image_id}: neither a cube nor a raw mosaic to evaluate")
     data = _read(job.raw)
     if job.raw_kind == "png":
-        raw = decode_png(data)
+        raw = decode_image(data)
         if raw.ndim == 3:
             raw = raw[..., 0]
         raw = raw.astype(np.uint16)
@@ -127,8 +127,8 @@ def load_truth(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:
     """The job's label map on the cube's grid (``labels_to_cube``), or None without one."""
     if job.labels is None:
         return None
-    from m2s2hil.store.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_image
 
     data = _read(job.labels)
-    arr = decode_tiff(data)[0] if job.labels.path.endswith((".tif", ".tiff")) else decode_png(data)
+    arr = decode_tiff(data)[0] if job.labels.path.endswith((".tif", ".tiff")) else decode_image(data)
     return labels_to_cube(arr, shape)

@@ -9,7 +9,7 @@ report can be mailed or archived without the session). Sections:
 3. QC per pose: one grid per lighting condition, elevations × azimuths, each cell the
    frame's score coloured against the threshold;
 4. contact sheet: per lighting and elevation, every frame's preview (the engine's
-   preview PNG; rendered from the cube when the session has none) with its azimuth,
+   preview, JPEG or PNG; rendered from the cube when the session has none) with its azimuth,
    score and flags; flagged frames are framed in red.
 
 Frames stored without a QC result (captured without the hook, or imported) are scored
@@ -93,14 +93,14 @@ def _saturation_on_grid(raw: np.ndarray, full_scale: int, shape: tuple[int, int]
 
 def _compute_qc(job: Any, config: QcConfig) -> tuple[float | None, list[str], np.ndarray | None]:
     from m2s2hil.analysis.evaluate import decode_tiff, load_cube
-    from m2s2hil.store.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_image
 
     cube = load_cube(job)
     sat = None
     full_scale = (1 << int(job.camera.get("bit_depth", 10))) - 1
     if job.raw is not None:
         data = Path(job.raw.path).read_bytes()
-        raw = decode_png(data) if job.raw_kind == "png" else decode_tiff(data)[0]
+        raw = decode_image(data) if job.raw_kind == "png" else decode_tiff(data)[0]
         sat = _saturation_on_grid(np.asarray(raw), full_scale, cube.shape[1:])
     res = capture_stability(cube, sat, config=config, full_scale=full_scale)
     return res.score, list(res.flags), cube
@@ -111,7 +111,7 @@ def collect_views(
 ) -> tuple[list[FrameView], dict[str, Any]]:
     """Per-frame views (scores, flags, thumbnails) of an open SessionStore, and its QC summary."""
     from m2s2hil.analysis.evaluate import session_jobs
-    from m2s2hil.store.frame_files import decode_png
+    from m2s2hil.store.frame_files import decode_image
 
     cfg = config or QcConfig()
     jobs = {j.image_id.split("/", 1)[1]: j for j in session_jobs(store)}
@@ -128,7 +128,7 @@ def collect_views(
         thumb = None
         if thumb_px > 0:
             if "preview" in fr.files:
-                thumb = thumbnail_jpeg(decode_png(store.read_file(fr.files["preview"])), thumb_px)
+                thumb = thumbnail_jpeg(decode_image(store.read_file(fr.files["preview"])), thumb_px)
             else:
                 from m2s2hil.analysis.evaluate import load_cube
 

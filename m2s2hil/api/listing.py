@@ -88,8 +88,9 @@ def frame_page(store: SessionStore, *, offset: int = 0, limit: int = 50) -> tupl
     return [SessionStore._frame_record(r) for r in rows], int(total)
 
 
-def frame_bytes(store: SessionStore, session_id: str, n: int, role: Literal["raw", "preview"]) -> bytes:
-    """The checked bytes of frame ``n``'s raw or preview file."""
+def frame_bytes(store: SessionStore, session_id: str, n: int,
+                role: Literal["raw", "preview"]) -> tuple[bytes, str]:
+    """The checked bytes of frame ``n``'s raw or preview file, and its path in the session."""
     rows = store.journal.query("SELECT * FROM frames WHERE idx = ?", (n,))
     if not rows:
         raise UnknownSession(f"session {session_id} has no frame {n} (frames are numbered by their "
@@ -101,7 +102,7 @@ def frame_bytes(store: SessionStore, session_id: str, n: int, role: Literal["raw
     base = store.path.resolve()
     if not (base / f.path).resolve().is_relative_to(base):
         raise SessionCorrupt(f"journal of {session_id} names a file outside its folder")
-    return store.read_file(f, check=True)
+    return store.read_file(f, check=True), f.path
 
 
 def journal_events(store: SessionStore) -> tuple[str, list[dict]]:

@@ -587,7 +587,7 @@ class SessionManager:
         with self.reading(session_id) as store:
             return listing.frame_page(store, offset=offset, limit=limit)
 
-    def frame_file(self, session_id: str, n: int, role: Literal["raw", "preview"]) -> bytes:
+    def frame_file(self, session_id: str, n: int, role: Literal["raw", "preview"]) -> tuple[bytes, str]:
         with self.reading(session_id) as store:
             return listing.frame_bytes(store, session_id, n, role)
 

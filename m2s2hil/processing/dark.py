@@ -17,8 +17,9 @@ import hashlib
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
+from functools import cached_property
 from pathlib import Path
 from typing import Literal
 
@@ -63,12 +64,24 @@ class MasterDark:
     def shape(self) -> tuple[int, int]:
         return self.data.shape  # type: ignore[return-value]
 
+    def __post_init__(self) -> None:
+        # The pixels are hashed once and the digest goes into every frame's metadata, so they
+        # must not change afterwards: a read-only view makes an in-place edit fail loudly.
+        view = np.asarray(self.data).view()
+        view.flags.writeable = False
+        object.__setattr__(self, "data", view)
+
+    @cached_property
+    def _digest(self) -> str:
+        return hashlib.sha256(np.ascontiguousarray(self.data)).hexdigest()
+
     def sha256(self) -> str:
-        return hashlib.sha256(np.ascontiguousarray(self.data).tobytes()).hexdigest()
+        return self._digest
 
     def provenance(self) -> dict:
         """JSON-able description (no pixels) to record with every frame corrected by this dark."""
-        meta = {k: v for k, v in asdict(self).items() if k != "data"}
+        # Built field by field: dataclasses.asdict would deep-copy the pixels on every frame.
+        meta = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "data"}
         meta["shape"] = list(self.shape)
         meta["sha256"] = self.sha256()
         return meta

@@ -81,7 +81,7 @@ def _is_compressed(data: bytes) -> bool:
         return tf.pages[0].compression != tifffile.COMPRESSION.NONE
 
 
-_FILE_RE = re.compile(r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?P<ext>tiff|png)$")
+_FILE_RE = re.compile(r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?P<ext>tiff|png|jpg)$")
 
 
 def _v2(path: str) -> str:

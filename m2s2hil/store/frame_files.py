@@ -22,7 +22,8 @@ readers accept both, since every TIFF says how it is compressed:
   legacy. float64 is stored as float32.
 - Metadata as JSON in the ImageDescription tag. A frame's metadata is encoded once
   (:class:`EncodedJSON`) and the same text goes into the TIFF and the journal.
-- Preview and exported mosaics: PNG through OpenCV (8-bit gray/RGB, 16-bit gray).
+- Preview: JPEG (quality 90) in the compressed format, PNG in the legacy one; exported mosaics
+  and truth labels: PNG through OpenCV (8-bit gray/RGB, 16-bit gray).
 """
 
 from __future__ import annotations
@@ -33,8 +34,14 @@ import math
 from typing import Any
 
 import cv2
+import imagecodecs
 import numpy as np
 import tifffile
+
+try:  # Intel ISA-L's deflate, the fastest writer of the raw frames' strips (see _deflate_strips)
+    from isal import isal_zlib as _isal_zlib
+except ImportError:  # pragma: no cover - platforms without an isal wheel
+    _isal_zlib = None
 
 from m2s2hil.errors import UsageError
 
@@ -87,6 +94,24 @@ def dumps(obj: Any) -> str:
 #: TIFF compression of the ``compressed`` format (see the module docstring for the measurement).
 COMPRESSION = "zlib"
 COMPRESSION_ARGS = {"level": 1}
+#: Rows per TIFF strip of a compressed 2-D image: 256 KiB of a 2048-wide uint16 row block,
+#: what tifffile chooses itself, so readers can decode strips in parallel or read a band of rows.
+STRIP_BYTES = 1 << 18
+
+
+def _deflate_strips(arr: np.ndarray) -> tuple[int, list[bytes]]:
+    """A 2-D little-endian array cut into row strips, each a zlib (TIFF deflate) stream.
+
+    Compressed with Intel ISA-L (``isal``) at its level 1: 16 ms a 2048² frame against 23 ms
+    for libdeflate level 1 (tifffile's own), 3 % larger (docs/benchmarks.md). The streams are
+    plain deflate, so every TIFF reader opens the file; without ``isal`` the strips go through
+    imagecodecs' libdeflate at level 1 instead.
+    """
+    rows = max(1, min(arr.shape[0], STRIP_BYTES // max(1, arr.shape[1] * arr.itemsize)))
+    chunks = [arr[r:r + rows] for r in range(0, arr.shape[0], rows)]
+    if _isal_zlib is not None:
+        return rows, [_isal_zlib.compress(c, 1) for c in chunks]
+    return rows, [imagecodecs.zlib_encode(c, level=1) for c in chunks]
 
 
 def _tiff(arr: np.ndarray, description: dict | EncodedJSON, *, compress: bool = False) -> bytes:
@@ -101,8 +126,17 @@ def _tiff(arr: np.ndarray, description: dict | EncodedJSON, *, compress: bool = 
         text = f'{{"shape": {shape}' + (", " + body if body.strip() != "}" else "}")
     else:
         text = dumps({"shape": list(arr.shape), **{k: v for k, v in description.items() if k != "shape"}})
-    kw: dict[str, Any] = {"compression": COMPRESSION, "compressionargs": COMPRESSION_ARGS} if compress else {}
-    tifffile.imwrite(buf, arr, description=text, metadata=None, photometric="minisblack", **kw)
+    common: dict[str, Any] = {"description": text, "metadata": None, "photometric": "minisblack"}
+    if compress and arr.ndim == 2 and arr.size:
+        # Raw mosaics and darks: strips compressed here, written as they are (tifffile's
+        # documented iterator-of-bytes input) with the compression tag they were made for.
+        le = np.ascontiguousarray(arr, dtype=arr.dtype.newbyteorder("<"))
+        rows, strips = _deflate_strips(le)
+        tifffile.imwrite(buf, iter(strips), shape=le.shape, dtype=le.dtype, byteorder="<",
+                         compression=COMPRESSION, rowsperstrip=rows, **common)
+    else:
+        kw: dict[str, Any] = {"compression": COMPRESSION, "compressionargs": COMPRESSION_ARGS}
+        tifffile.imwrite(buf, arr, **common, **(kw if compress else {}))
     return buf.getvalue()
 
 
@@ -177,11 +211,43 @@ def encode_png(img: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def decode_png(data: bytes) -> np.ndarray:
-    """PNG bytes to an array as stored (RGB order for colour); InvalidImage if unreadable."""
+#: JPEG quality of the compressed format's previews: 8-bit display images, made again from raw +
+#: dark whenever needed, so lossless PNG (0.41 MB, 6 ms a 512² preview) buys nothing; quality 90
+#: 4:4:4 is 0.05 MB in 0.8 ms, 2 DN from the PNG on average (docs/benchmarks.md).
+PREVIEW_JPEG_QUALITY = 90
+
+
+def encode_jpeg(rgb: np.ndarray, quality: int = PREVIEW_JPEG_QUALITY) -> bytes:
+    """8-bit RGB (H, W, 3) to baseline JPEG bytes."""
+    if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3):
+        raise InvalidImage(f"JPEG needs uint8 RGB (H, W, 3), got {_desc(rgb)}")
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    # 4:4:4 (no chroma subsampling): colour stays sharp at material edges, for 1.5x the bytes
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality),
+              cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
+    ok, buf = cv2.imencode(".jpg", bgr, params)
+    if not ok:
+        raise InvalidImage("OpenCV could not encode the JPEG")
+    return buf.tobytes()
+
+
+def preview_file(name: str, rgb: np.ndarray, *, compress: bool) -> tuple[str, bytes]:
+    """A frame's preview file (relative path, bytes): JPEG in the compressed format, PNG in the legacy one."""
+    if compress:
+        return f"frames/{name}.preview.jpg", encode_jpeg(rgb)
+    return f"frames/{name}.preview.png", encode_png(rgb)
+
+
+def image_media_type(path: str) -> str:
+    """The media type of a stored preview or label image, from its name."""
+    return "image/jpeg" if path.lower().endswith((".jpg", ".jpeg")) else "image/png"
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """PNG (or JPEG) bytes to an array as stored (RGB order for colour); InvalidImage if unreadable."""
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None:
-        raise InvalidImage("not a readable PNG")
+        raise InvalidImage("not a readable PNG or JPEG")
     if arr.ndim == 3 and arr.shape[2] == 3:
         arr = cv2.cvtColor(arr, cv2.COLOR_BGR2RGB)
     elif arr.ndim == 3 and arr.shape[2] == 4:

@@ -49,7 +49,7 @@ from m2s2hil.errors import CatalogError, UsageError
 from m2s2hil.plan import DarkPolicy, Sweep, dark_event, frame_event_id
 from m2s2hil.store import import_meta
 from m2s2hil.store.atomic import fsync_dir
-from m2s2hil.store.frame_files import InvalidImage, decode_png, decode_tiff
+from m2s2hil.store.frame_files import InvalidImage, decode_image, decode_tiff
 from m2s2hil.store.frame_meta import STORE_KEYS
 from m2s2hil.store.import_meta import Sidecar, SidecarError, bit_depth, camera_fields, read_sidecars
 from m2s2hil.store.session import SessionStore
@@ -150,7 +150,7 @@ def _read16(path: Path, bits: int | None) -> tuple[np.ndarray, int, str]:
     """A lossless 16-bit mosaic of ``HIL16/``; the bit depth from the metadata, else the
     smallest of 10, 12, 16 bits holding its largest value."""
     try:
-        img = decode_png(path.read_bytes())
+        img = decode_image(path.read_bytes())
     except InvalidImage as exc:
         raise DatasetImportError(path, str(exc)) from None
     if img.dtype != np.uint16 or img.ndim != 2:
@@ -183,7 +183,7 @@ def _read(item: _Item, sidecar: Sidecar | None = None) -> tuple[np.ndarray, int,
             raise DatasetImportError(item.path, f"white level {white} needs more than 16 bits")
         return mosaic, bits, f"raw:{item.path.suffix.lower().lstrip('.')}"
     try:
-        img = decode_png(item.path.read_bytes())
+        img = decode_image(item.path.read_bytes())
     except InvalidImage as exc:
         raise DatasetImportError(item.path, str(exc)) from None
     if img.dtype != np.uint8:

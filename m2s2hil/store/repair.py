@@ -38,7 +38,7 @@ from m2s2hil.store.journal import Journal, JournalError
 from m2s2hil.store.owner_lock import OwnerLock
 from m2s2hil.store.session import JOURNAL, SessionCorrupt, SessionNotFound, _check_id, software_version
 
-_ROLE_RE = re.compile(r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?:tiff|png)$")
+_ROLE_RE = re.compile(r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?:tiff|png|jpg)$")
 
 
 @dataclass
@@ -74,7 +74,7 @@ def _description(data: bytes) -> dict[str, Any] | None:
     return meta
 
 
-def _png_ok(data: bytes) -> bool:
+def _image_ok(data: bytes) -> bool:
     from PIL import Image
 
     try:
@@ -172,7 +172,7 @@ def _rebuild(path: Path, session_id: str) -> RepairReport:
             if role == "raw":
                 continue
             data = p.read_bytes()
-            sound = _description(data) is not None if p.suffix == ".tiff" else _png_ok(data)
+            sound = _description(data) is not None if p.suffix == ".tiff" else _image_ok(data)
             rec = accept(p, data) if sound else None
             if rec is None:
                 quarantine(p)

@@ -6,7 +6,7 @@ Layout of ``<root>/<session_id>/``::
     sweep.json, rig.json      human-readable copies of the plan and the rig
     frames/<event>.raw.tiff   raw mosaic, uint16, metadata JSON in ImageDescription
     frames/<event>.cube.tiff  processed cube (bands, H, W), float32, only when stored (below)
-    frames/<event>.preview.png
+    frames/<event>.preview.jpg  8-bit RGB quick-look (.png in legacy sessions)
     darks/<dark>.tiff         master darks, uint16 (float32 in legacy sessions)
     manifest.json             every file with its sha256, written at completion
 
@@ -87,6 +87,7 @@ from m2s2hil.store.frame_files import (
     encode_raw,
     encode_tiff,
     normalise_cube,
+    preview_file,
 )
 from m2s2hil.store.frame_meta import build_meta
 from m2s2hil.store.journal import DuplicateEvent, Journal, JournalDamaged, JournalError
@@ -574,7 +575,7 @@ class SessionStore:
                 files["cube"] = (f"frames/{name}.cube.tiff",
                                  encode_cube(cube, desc, m.n_bands, compress=fmt != "legacy"))
             if preview_rgb is not None:
-                files["preview"] = (f"frames/{name}.preview.png", encode_png(preview_rgb))
+                files["preview"] = preview_file(name, preview_rgb, compress=fmt != "legacy")
             for role, arr in (extra or {}).items():
                 files[role] = _extra_file(name, role, arr, full)
             recs = self._write(files)

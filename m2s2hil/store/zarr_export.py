@@ -63,12 +63,12 @@ def _frames_dataset(store: Any, xr: Any, da: Any, dark_keys: dict[str, str]) -> 
         return store.read_raw(event_id)[0]
 
     def labels_of(event_id: str) -> np.ndarray:
-        from m2s2hil.store.frame_files import decode_png
+        from m2s2hil.store.frame_files import decode_image
 
         fr = store.frame(event_id)
         if "truth_labels" not in fr.files:
             return np.zeros(shape, np.uint8)
-        return decode_png(store.read_file(fr.files["truth_labels"])).astype(np.uint8)
+        return decode_image(store.read_file(fr.files["truth_labels"])).astype(np.uint8)
 
     raw = da.stack([da.from_delayed(delayed(raw_of)(fr.event_id), shape, np.uint16) for fr in frames])
     labels = da.stack([da.from_delayed(delayed(labels_of)(fr.event_id), shape, np.uint8) for fr in frames])
