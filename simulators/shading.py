@@ -130,9 +130,14 @@ def _shade_rows(
     nl = ldirs.shape[0]
     sh, sw = smap.shape
     for y in range(r0, r1):
+        by = y % n
+        bx = -1  # x % n kept as a counter: an integer division per pixel cost more than the rest
         for x in range(w):
+            bx += 1
+            if bx == n:
+                bx = 0
             lab = label[y, x]
-            b = layout[y % n, x % n]
+            b = layout[by, bx]
             if lab == 0:
                 out_d[y, x] = bg_irr
                 out_s[y, x] = 0.0
