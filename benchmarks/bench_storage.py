@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import shutil
 import statistics
 import tempfile
@@ -207,8 +208,6 @@ def bench_cube(store_path: Path, repeat: int) -> list[str]:
 
 
 def describe_load() -> str:
-    import os
-
     return f"load average {os.getloadavg()[0]:.1f}"
 
 
@@ -237,6 +236,9 @@ def main() -> None:
                     print(f"{fmt}: {r['wall_s']:.1f} s wall ({describe_load()})", flush=True)
                     if fmt == "legacy" or k < args.rounds - 1:
                         shutil.rmtree(r["path"])  # 6 GB; the numbers are kept
+                    # Every build starts with nothing of the last one still being written back
+                    # (a legacy build leaves gigabytes of dirty pages): untimed.
+                    os.sync()
             if "build" in only:
                 print("\n| round | format | wall time | efficiency | frames | written | bytes / frame "
                       "| storage threads |")
@@ -245,11 +247,18 @@ def main() -> None:
                     print(f"| {r['round']} | {r['format']} | {r['wall_s']:.1f} s | {r['efficiency']:.3f} | "
                           f"{r['frames']} | {r['bytes'] / 1e9:.2f} GB | {r['per_frame_mb']:.2f} MB | "
                           f"{r['store_s']:.1f} s |")
+                ups = []
                 for k in range(args.rounds):
                     pair = {r["format"]: r for r in results if r["round"] == k + 1}
                     old, new = pair["legacy"], pair["compressed"]
-                    print(f"round {k + 1}: speed-up (wall) {old['wall_s'] / new['wall_s']:.2f}x; "
+                    ups.append(old["wall_s"] / new["wall_s"])
+                    print(f"round {k + 1}: speed-up (wall) {ups[-1]:.2f}x; "
                           f"size {old['bytes'] / new['bytes']:.2f}x smaller")
+                walls = {f: statistics.median(r["wall_s"] for r in results if r["format"] == f)
+                         for f in ("legacy", "compressed")}
+                print(f"median wall: legacy {walls['legacy']:.1f} s, compressed {walls['compressed']:.1f} s "
+                      f"({walls['legacy'] / walls['compressed']:.2f}x); median of the rounds' speed-ups "
+                      f"{statistics.median(ups):.2f}x")
             if "cube" in only:
                 last = next(r for r in reversed(results) if r["format"] == "compressed")
                 print("\n".join(bench_cube(last["path"], args.repeat)))

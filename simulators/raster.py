@@ -86,6 +86,7 @@ def _raster_rows(
                         label[y, x] = tri_label[t]
 
 
+@cache
 def n_threads() -> int:
     return max(1, min(2, os.cpu_count() or 1))
 
