@@ -14,6 +14,8 @@ build   the full build (voyager B3, 324 frames, 3 darks, 2048², the engine's de
         ``[storage] format = "legacy"`` and ``"compressed"``: wall time, bytes per frame (every
         file of the session / frames), storage-thread time.
 
+Each build runs in its own interpreter, the formats alternate per round, and every build starts
+after ``os.sync()`` and a pause, so none inherits the previous one's heap or pending disk work.
 Wall times depend on the shared machine's load; sizes are exact for these frames.
 """
 
@@ -21,9 +23,12 @@ from __future__ import annotations
 
 import argparse
 import io
+import json
 import os
 import shutil
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -38,6 +43,8 @@ from m2s2hil.config import RigConfig, StorageConfig, default_rig
 from m2s2hil.hostinfo import describe_machine
 from m2s2hil.plan import DEFAULT_EXPOSURE_S, Sweep
 from m2s2hil.store.frame_files import encode_dark, encode_raw
+
+SETTLE_S = 5.0  # pause between builds, after os.sync(), for the disk to finish the last one's work
 
 CODECS: list[tuple[str, dict]] = [
     ("none", {}),
@@ -185,6 +192,16 @@ def run_build(fmt: str, root: Path, sweep: Sweep) -> dict:
             "path": path}
 
 
+def build_in_subprocess(fmt: str, root: Path) -> dict:
+    """One build in a fresh interpreter (``--one``): no heap or cache state carried over from
+    the build before, whichever format it was."""
+    out = subprocess.run([sys.executable, __file__, "--one", fmt, "--root", str(root)],
+                         check=True, capture_output=True, text=True).stdout
+    r = json.loads(out.strip().splitlines()[-1])
+    r["path"] = Path(r["path"])
+    return r
+
+
 def bench_cube(store_path: Path, repeat: int) -> list[str]:
     from m2s2hil.store.session import SessionStore
 
@@ -216,7 +233,13 @@ def main() -> None:
     ap.add_argument("--only", default="codecs,cube,build")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--rounds", type=int, default=1, help="build both formats this many times, alternating")
+    ap.add_argument("--one", choices=("legacy", "compressed"), help=argparse.SUPPRESS)
+    ap.add_argument("--root", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.one:  # a child of build_in_subprocess: one build, its figures as one JSON line
+        r = run_build(args.one, args.root, Sweep(satellite="voyager", build="B3"))
+        print(json.dumps({**r, "path": str(r["path"])}))
+        return
     only = set(args.only.split(","))
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # the zstd probes fail loudly
     print(describe_machine())
@@ -225,20 +248,20 @@ def main() -> None:
         if "codecs" in only:
             print("\n".join(bench_codecs(args.repeat, tmp)))
         if only & {"build", "cube"}:
-            sweep = Sweep(satellite="voyager", build="B3")
             results = []
-            for k in range(args.rounds):  # one process, same machine; the order alternates per round
+            for k in range(args.rounds):  # same machine, one process a build; the order alternates
                 order = ("legacy", "compressed") if k % 2 == 0 else ("compressed", "legacy")
                 for fmt in order:
-                    r = run_build(fmt, tmp / f"{fmt}{k}", sweep)
+                    r = build_in_subprocess(fmt, tmp / f"{fmt}{k}")
                     r["round"] = k + 1
                     results.append(r)
                     print(f"{fmt}: {r['wall_s']:.1f} s wall ({describe_load()})", flush=True)
                     if fmt == "legacy" or k < args.rounds - 1:
                         shutil.rmtree(r["path"])  # 6 GB; the numbers are kept
                     # Every build starts with nothing of the last one still being written back
-                    # (a legacy build leaves gigabytes of dirty pages): untimed.
+                    # or freed (a legacy build leaves gigabytes): untimed.
                     os.sync()
+                    time.sleep(SETTLE_S)
             if "build" in only:
                 print("\n| round | format | wall time | efficiency | frames | written | bytes / frame "
                       "| storage threads |")

@@ -5,12 +5,13 @@ Two formats, chosen by the rig's ``[storage] format`` (the ``compress`` argument
 readers accept both, since every TIFF says how it is compressed:
 
 - ``compressed`` (default): raw mosaic and master dark as 2-D uint16 TIFF, deflate (TIFF
-  compression 8, level 1), no predictor. Chosen by measurement on simulated frames of
-  every lighting (``benchmarks/bench_storage.py``, docs/benchmarks.md): 2.8× smaller than
-  uncompressed (2.95 MB a 2048² frame), ~25 ms to write and ~10 ms to read on a quiet
-  machine; zstd is 5 % smaller and faster but OpenCV cannot read it (nor many GDAL/libtiff
-  builds), and horizontal differencing (the predictor) made these noise-dominated 10-bit
-  frames *larger*. Readers: tifffile, Pillow (``Image.open`` → mode ``I;16``), OpenCV
+  compression 8, level 1) in 64-row strips, no predictor. Chosen by measurement on simulated
+  frames of every lighting (``benchmarks/bench_storage.py``, docs/benchmarks.md): 2.8×
+  smaller than uncompressed (about 3 MB a 2048² frame); the strips are compressed by Intel
+  ISA-L (16 ms a frame, against 23 ms for libdeflate and 65 ms for zlib at the same level);
+  zstd is 5 % smaller but OpenCV cannot read it (nor many GDAL/libtiff builds), and
+  horizontal differencing (the predictor) made these noise-dominated 10-bit frames *larger*.
+  Readers: tifffile, Pillow (``Image.open`` → mode ``I;16``), OpenCV
   (``cv2.imread(path, cv2.IMREAD_UNCHANGED)``), anything on libtiff. The master dark is the
   rounded mean of N frames (``processing.dark.build_master_dark`` rounds it to whole DN,
   the precision the correction uses), so uint16 stores it exactly; a master that is not
@@ -111,7 +112,7 @@ def _deflate_strips(arr: np.ndarray) -> tuple[int, list[bytes]]:
     chunks = [arr[r:r + rows] for r in range(0, arr.shape[0], rows)]
     if _isal_zlib is not None:
         return rows, [_isal_zlib.compress(c, 1) for c in chunks]
-    return rows, [imagecodecs.zlib_encode(c, level=1) for c in chunks]
+    return rows, [imagecodecs.deflate_encode(c, level=1) for c in chunks]  # zlib-wrapped
 
 
 def _tiff(arr: np.ndarray, description: dict | EncodedJSON, *, compress: bool = False) -> bytes:
