@@ -84,6 +84,9 @@ def test_console_end_to_end(tmp_path: Path) -> None:
         page.wait_for_function("document.getElementById('run-state').textContent === 'completed'",
                                timeout=60000)
         page.wait_for_function("document.querySelectorAll('#run-sheet img[src^=\"blob:\"]').length === 4")
+        # the stored JPEG previews decode in the browser (not merely fetched)
+        page.wait_for_function("[...document.querySelectorAll('#run-sheet img')]"
+                               ".every((i) => i.complete && i.naturalWidth > 0)")
         sid = page.inner_text("#run-id")
         st = d.client.get(f"/sessions/{sid}").json()
         assert st["done"] == st["total"] and st["skipped"] == 0
