@@ -182,3 +182,18 @@ def test_subtract_dark_in_place():
     np.testing.assert_array_equal(sat, [[False, True, False, False]])  # flagged from the raw value
     with pytest.raises(FrameShapeError, match="dark"):
         subtract_dark(raw, dark, out=dark, full_scale=FS)
+
+
+def test_master_dark_is_hashed_once_and_cannot_change_after():
+    """The digest goes into every corrected frame's metadata: computed once, from pixels that
+    can no longer be edited in place (an edit would make every later frame's record wrong)."""
+    import hashlib
+
+    frames = [np.full((8, 8), v, np.uint16) for v in (10, 12)]
+    md = build_master_dark(frames, exposure_s=0.01, gain=1.0, temperature_c=25.0)
+    prov = md.provenance()
+    assert prov["sha256"] == hashlib.sha256(np.ascontiguousarray(md.data).tobytes()).hexdigest()
+    assert "data" not in prov and prov["shape"] == [8, 8] and prov["n_frames"] == 2
+    with pytest.raises(ValueError, match="read-only"):
+        md.data[0, 0] = 99
+    assert md.provenance() == prov
