@@ -17,7 +17,6 @@ from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.errors import UsageError
 from m2s2hil.processing.dark import DarkLibrary
 from m2s2hil.rig.live_view import LiveSettings, LiveStream, LiveViewBusy
-from m2s2hil.rig.manual import ManualControl
 from m2s2hil.rig.opened import Rig
 
 from .common import get_manager
@@ -82,10 +81,6 @@ class Console:
     darks: DarkLibrary
     calibration_path: Path
     camera: LiveCamera
-
-    @property
-    def manual(self) -> ManualControl:
-        return ManualControl(self.manager.rig)
 
 
 def calibration_path_for(mg: SessionManager) -> Path:

@@ -104,9 +104,11 @@ class CrossSiteGuard:
         return None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] in ("http", "websocket") and _reaches_a_handler(scope):
+        if scope["type"] in ("http", "websocket"):
             why = self.refusal(scope)
-            if why is not None:
+            # Route matching (every route's regex) only for a request that would be refused:
+            # reads, the bulk of the traffic (live view, polling), never pay for it.
+            if why is not None and _reaches_a_handler(scope):
                 await refuse(scope, send, 403, why)
                 return
         await self.app(scope, receive, send)

@@ -58,10 +58,10 @@ def get_axes(mg: Manager) -> dict:
     lamps_on: list[str] | None = None
     if owner is None:
         try:
-            with mg.manual_access("reading the axes") as rig:
-                axes = [_axis_out(ManualControl(rig), r, None) for r in ("turntable", "tilt")]
+            with mg.manual_access("reading the axes"):  # the device lock (it yields mg.rig, mc's rig)
+                axes = [_axis_out(mc, r, None) for r in ("turntable", "tilt")]
                 try:
-                    lamps_on = ManualControl(rig).lamps_on()
+                    lamps_on = mc.lamps_on()
                 except Exception:
                     lamps_on = None
         except Conflict:  # a session is starting: it owns the rig already
