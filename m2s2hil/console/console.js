@@ -359,7 +359,7 @@ async function pollRun() {
   $("run-pose").textContent = s.azimuth_deg == null ? "–" : `az ${s.azimuth_deg.toFixed(1)}° tilt ${(s.tilt_deg ?? 0).toFixed(1)}°`;
   $("run-light").textContent = s.lighting ? `${s.lighting} ${s.elevation ?? ""}` : "–";
   $("run-eta").textContent = s.eta_s == null ? "–" : fmtS(s.eta_s);
-  $("run-faults").textContent = String(s.faults.length);
+  $("run-faults").textContent = String(s.fault_count);  // every fault met: `faults` lists the last 50
   const ended = ["completed", "completed_with_gaps", "failed", "aborted", "cancelled", "estopped"].includes(s.state);
   $("run-pause").disabled = ended || s.state !== "running";
   const lens = lensWait(s);
