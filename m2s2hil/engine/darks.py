@@ -128,20 +128,20 @@ class SessionDarks:
             rec = next(d for d in self.store.darks() if d.dark_id == ev.event_id)
             return self.load(rec)
         cam = self.rig.camera
-        if self.operator_lens is not None and self.rig.lens_needs_operator:
+        operator_lens = self.operator_lens if self.rig.lens_needs_operator else None
+        if operator_lens is not None:
             # Real rig: parks until the operator confirms the cap. It stays on after the
             # dark (the next planned dark needs it too); the runner asks for it off before
             # the next lit unit, or a failed dark's retry finds it still on.
-            self.operator_lens(True)
-            self.camera.configure(ev.exposure_s, ev.gain)
-            frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
+            operator_lens(True)
         else:
             self.rig.cap_lens(True)
             self.ops.lens_capped = True
-            try:
-                self.camera.configure(ev.exposure_s, ev.gain)
-                frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
-            finally:
+        try:
+            self.camera.configure(ev.exposure_s, ev.gain)
+            frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
+        finally:
+            if operator_lens is None:  # a simulated cap comes off after the dark
                 self.rig.cap_lens(False)
                 self.ops.lens_capped = False
         master = build_master_dark(
@@ -157,10 +157,10 @@ class SessionDarks:
         if ev.event_id != base:
             self._alias[base] = ev.event_id
         self.on_captured(ev)
-        if ev.index < 0 and self.operator_lens is not None and self.rig.lens_needs_operator:
+        if ev.index < 0 and operator_lens is not None:
             # Not a planned dark: taken in the middle of a lit unit, whose lamps and pose the
             # parking gave up. Cap off, then the unit again (it finds this dark stored).
-            self.operator_lens(False)
+            operator_lens(False)
             raise LensCycled(f"dark {ev.event_id} taken under the operator's lens cap: the unit again")
         return dark
 

@@ -37,6 +37,7 @@ import numpy as np
 
 from m2s2hil.engine.darks import Dark
 from m2s2hil.plan import CaptureEvent, Sweep
+from m2s2hil.processing.display import false_colour
 from m2s2hil.rig.opened import Rig
 from m2s2hil.rig.operations import RigOps
 from m2s2hil.store.session import SessionStore
@@ -71,7 +72,7 @@ class FrameStages:
     """Per-frame metadata and truth (engine thread), processing and storage (pipeline threads)."""
 
     def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, *, qc: QcHook | None,
-                 save_truth: bool, processor_factory: Callable[..., Any] | None, version: str) -> None:
+                 save_truth: bool, processor_factory: Callable[..., Any] | None) -> None:
         self.rig = rig
         self.store = store
         self.sweep = sweep
@@ -79,7 +80,6 @@ class FrameStages:
         self.qc = qc
         self.save_truth = save_truth
         self.processor_factory = processor_factory
-        self.version = version
         self._processors: dict[str | None, Any] = {}  # dark id -> frame processor
 
     def processor(self, dark: Dark | None) -> Any:
@@ -209,8 +209,6 @@ def rgb_preview(cube: np.ndarray | None, bands_nm: tuple[float, ...],
                 white: np.ndarray | None = None) -> np.ndarray | None:
     """8-bit sRGB preview (``processing.display.false_colour``): bands nearest 640/550/470 nm,
     white-balanced (grey world, or ``white``: a white reference's signal per band), sRGB curve."""
-    from m2s2hil.processing.display import false_colour
-
     if cube is None or cube.ndim != 3:
         return None
     if cube.shape[0] != len(bands_nm):  # (H, W, bands)

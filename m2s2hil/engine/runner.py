@@ -222,7 +222,7 @@ class Engine:
                          should_stop=lambda: self.state is not S.RUNNING)
         self._frames = FrameStages(rig, store, sweep, self.ops, qc=qc,
                                    save_truth=opts.save_truth and rig.simulated,
-                                   processor_factory=opts.processor_factory, version=self._version)
+                                   processor_factory=opts.processor_factory)
         kit = CaptureKit(
             rig=rig, store=store, sweep=sweep, ops=self.ops, camera=camera,
             exposure=ExposureMeter(sweep, store, camera, rig.config.camera.model),
@@ -556,7 +556,7 @@ class Engine:
                                 f"({len(self._faults)} fault(s); see the journal's skips)")
             self._error = RuntimeError(self._error_text)
             return S.FAILED
-        if {e.event_id for e in self.events} - self._done:
+        if self._by_id.keys() - self._done:
             return S.COMPLETED_WITH_GAPS  # each gap recorded with its reason; a resume retries them
         return S.COMPLETED
 

@@ -11,15 +11,12 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Sequence
 
-from m2s2hil.engine.steps import CaptureKit, SharedSteps
+from m2s2hil.engine.steps import SharedSteps
 from m2s2hil.plan import CaptureEvent, estimate
 
 
 class StopAndGoSteps(SharedSteps):
     """:class:`~m2s2hil.engine.steps.CaptureSteps` for ``mode = "stop-and-go"``."""
-
-    def __init__(self, kit: CaptureKit) -> None:
-        super().__init__(kit)
 
     def unit_key(self, event: CaptureEvent) -> Hashable | None:
         return None  # every event on its own
