@@ -28,6 +28,9 @@ from typing import Any
 import numpy as np
 
 DEFAULT_CACHE = Path("bench-out/segmenter-frames")  # one folder per sensor size below it
+# the spectral segmenter's defaults before issue 15
+OLD_DEFAULT: dict[str, Any] = {"fit_pixels": "all", "foreground": "otsu", "brightness_weight": 0.0,
+                               "merge_angle_deg": 1.0}
 
 
 def cache_frames(folder: Path, size: int, azimuths: tuple[float, ...] = (30.0, 200.0)) -> int:
@@ -70,7 +73,7 @@ def candidates() -> dict[str, Callable[[dict[str, Any]], Any]]:
         satellite, build = f["satellite"], f["build"]
         return SpectralSegmenter.for_build(satellite, build).segment(f["cube"])
 
-    old = {"fit_pixels": "all", "foreground": "otsu", "brightness_weight": 0.0, "merge_angle_deg": 1.0}
+    old = OLD_DEFAULT
     homog = {**old, "fit_pixels": "homogeneous", "noise_scaled": False}
     return {
         "BIC, all pixels (old default)": spectral(**old),
@@ -95,12 +98,10 @@ def merge_by_valley_test(f: dict[str, Any], ratio: float = 0.5) -> np.ndarray:
     above ``ratio`` × the smaller mode (a unimodal pair is one material drawn out by shading)."""
     from scipy import ndimage
 
-    from m2s2hil.analysis.spectral import SpectralSegmenter
+    from m2s2hil.analysis.spectral import SpectralSegmenter, features_of
 
-    old = {"fit_pixels": "all", "foreground": "otsu", "brightness_weight": 0.0, "merge_angle_deg": 1.0}
-    labels = SpectralSegmenter(**old).segment(f["cube"])
-    cube = f["cube"]
-    unit = cube / np.maximum(np.linalg.norm(cube, axis=0, keepdims=True), 1e-12)
+    labels = SpectralSegmenter(**OLD_DEFAULT).segment(f["cube"])
+    unit = features_of(f["cube"])  # unit-length spectra
     ids = [int(i) for i in np.unique(labels) if i > 0]
     px = {i: unit[:, labels == i].T for i in ids}
 

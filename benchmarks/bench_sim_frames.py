@@ -18,11 +18,10 @@ import time
 
 import numpy as np
 from m2s2hil.simulators.clock import VirtualClock
-from m2s2hil.simulators.frames import SimFrameSource
-from m2s2hil.simulators.world import LampInfo, World
 
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import load_rig
+from m2s2hil.sim_config import build_frame_source, build_world
 
 
 def ms(fn, repeat: int) -> float:
@@ -43,12 +42,12 @@ def main() -> None:
     cat = load_catalog()
     model = cfg.camera.model.model_copy(update={"width": args.size, "height": args.size})
     clock = VirtualClock()
-    info = {lc.channel: LampInfo(n, lc.kind, lc.warmup_s) for n, lc in cfg.lamps.items()}
-    world = World(clock, lamp_info=info)
+    world = build_world(cfg, clock)  # the simulated rig's own world and frame source
+    info = world.lamp_info
     pose = {"az": 0.0}
     world.attach_axis("turntable", lambda: pose["az"])
     world.attach_axis("tilt", lambda: 15.0)
-    src = SimFrameSource(world, model, lambda s, b: cat.build(s, b).materials)
+    src = build_frame_source(cfg, world, model=model)
     src.capture(0.005)  # compile / warm up
     print(f"{platform.node()} {platform.processor() or platform.machine()}, numpy {np.__version__}, "
           f"{args.size}x{args.size}")

@@ -38,7 +38,6 @@ import numpy as np
 import tifffile
 from PIL import Image
 
-from m2s2hil.catalog import load_catalog
 from m2s2hil.config import RigConfig, StorageConfig, default_rig
 from m2s2hil.hostinfo import describe_machine
 from m2s2hil.plan import DEFAULT_EXPOSURE_S, Sweep
@@ -64,18 +63,16 @@ CODECS: list[tuple[str, dict]] = [
 def sim_frames() -> tuple[dict[tuple[str, str, float], np.ndarray], list[np.ndarray]]:
     """Raw frames of every lighting, and 8 dark frames, from the simulator's frame source."""
     from m2s2hil.simulators.clock import VirtualClock
-    from m2s2hil.simulators.frames import SimFrameSource
-    from m2s2hil.simulators.world import LampInfo, World
+
+    from m2s2hil.sim_config import build_frame_source, build_world
 
     cfg = default_rig()
-    cat = load_catalog()
     clock = VirtualClock()
-    info = {lc.channel: LampInfo(n, lc.kind, lc.warmup_s) for n, lc in cfg.lamps.items()}
-    world = World(clock, lamp_info=info)
+    world = build_world(cfg, clock)  # the simulated rig's own world and frame source
     pose = {"az": 0.0}
     world.attach_axis("turntable", lambda: pose["az"])
     world.attach_axis("tilt", lambda: 0.0)
-    src = SimFrameSource(world, cfg.camera.model, lambda s, b: cat.build(s, b).materials)
+    src = build_frame_source(cfg, world)
     frames = {}
     for sat, build in (("voyager", "B3"), ("hubble", "B2")):
         world.mount(sat, build)
@@ -211,7 +208,6 @@ def bench_cube(store_path: Path, repeat: int) -> list[str]:
         st.read_cube(frames[0].event_id)  # processors built once per dark
         t = statistics.median(_time(lambda fr=fr: st.read_cube(fr.event_id), repeat) for fr in frames)
         lines.append(f"| computed from raw + dark (`read_cube`, compressed session) | {t:.1f} |")
-        raw = st.read_raw(frames[0].event_id)[0]
         rd = _time(lambda: st.read_raw(frames[0].event_id), repeat)
         lines.append(f"| of which reading the deflate raw (`read_raw`, sha256 checked) | {rd:.1f} |")
         cube = st.read_cube(frames[0].event_id)
@@ -220,7 +216,6 @@ def bench_cube(store_path: Path, repeat: int) -> list[str]:
         blob = data.getvalue()
         lines.append(f"| decoding a stored float32 cube (legacy, {len(blob) / 1e6:.1f} MB) | "
                      f"{_time(lambda: tifffile.imread(io.BytesIO(blob)), repeat):.1f} |")
-        del raw
     return lines
 
 

@@ -360,11 +360,7 @@ def run_disk_cell(cell: Cell, work: Path, *, size: int = 256, step: float = 90) 
     rig = open_simulated_rig(_config(size))
     shutil.disk_usage = fake  # type: ignore[assignment]
     try:
-        from m2s2hil.commands.capture import _run_engine
-        from m2s2hil.engine.build import build_run
-
-        engine = build_run(rig, root, sweep=_sweep(step), capture_qc=False)
-        code = _run_engine(engine, virtual=True)
+        engine, code = _run(rig, root, sweep=_sweep(step))
         short["on"] = False
         first = engine.status().state.value
         sid = engine.session_id

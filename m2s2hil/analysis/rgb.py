@@ -199,9 +199,9 @@ class RgbBaseline:
         self.gamma = DEFAULT_GAMMA if gamma is None else float(gamma)
         self.nir: NirRule = "clamp" if nir is None else nir
         self.ir_cut_nm = DEFAULT_IR_CUT_NM if ir_cut_nm is None else float(ir_cut_nm)
-        # validate now, not at the first image
+        # validate now, not at the first image (and cache the weights ``camera_rgb`` uses)
         if rendering == "camera":
-            self._weights = camera_weights(self.bands_nm, self.ir_cut_nm)
+            _weights32(self.bands_nm, self.ir_cut_nm)
         else:
             band_colours(self.bands_nm, self.gamma, self.nir)
         prefix = "rgb" if rendering == "camera" else "rgb-nir"

@@ -71,20 +71,18 @@ def simulated_frames(
     from m2s2hil.catalog import load_catalog
     from m2s2hil.config import load_rig
     from m2s2hil.processing import FrameProcessor, build_master_dark
+    from m2s2hil.sim_config import build_frame_source, build_world
     from m2s2hil.simulators.clock import VirtualClock
-    from m2s2hil.simulators.frames import SimFrameSource
-    from m2s2hil.simulators.world import LampInfo, World
 
     cfg = load_rig(None)
     cat = load_catalog()
     model = cfg.camera.model.model_copy(update={"width": int(size), "height": int(size)})
     clock = VirtualClock()
-    lamps = {lc.channel: LampInfo(n, lc.kind, lc.warmup_s) for n, lc in cfg.lamps.items()}
-    world = World(clock, lamp_info=lamps)
+    world = build_world(cfg, clock)  # the simulated rig's own world and frame source
     pose = {"az": 0.0, "tilt": 0.0}
     world.attach_axis("turntable", lambda: pose["az"])
     world.attach_axis("tilt", lambda: pose["tilt"])
-    src = SimFrameSource(world, model, lambda s, b: cat.build(s, b).materials, seed=seed)
+    src = build_frame_source(cfg, world, seed=seed, model=model)
     full = float(model.full_scale)
     skipped = set(skip)
     for light in lightings:

@@ -344,8 +344,7 @@ def notes(result: Any, rows: Sequence[Table2Row]) -> list[str]:
         + ("the wavelength→RGB rendering with the near-infrared bands clamped into red (Bruton, γ = 0.8): "
            "NOT what an RGB camera sees)." if "nir" in o.rgb_name else
            "the image an RGB camera would see: band responses through the CIE 1931 colour-matching "
-           "functions to linear sRGB, behind an IR-cut filter at 700 nm; `analysis.rgb`).")
-        + "",
+           "functions to linear sRGB, behind an IR-cut filter at 700 nm; `analysis.rgb`)."),
         "Macro scores average the ground-truth classes of each image (background included, 0/0 = 0) after "
         "oracle Hungarian matching of clusters to classes: an upper bound for a segmenter whose cluster "
         "ids carry no material names.",
