@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from m2s2hil.errors import M2S2Error
-from m2s2hil.store.atomic import fsync_dir
+from m2s2hil.store.atomic import fsync_dir, write_files_atomic
 from m2s2hil.store.cubes import CubeComputer
 from m2s2hil.store.frame_files import (
     EncodedJSON,
@@ -44,7 +44,7 @@ from m2s2hil.store.frame_files import (
     encode_dark,
     encode_raw,
 )
-from m2s2hil.store.frame_meta import CUBE_RECIPE
+from m2s2hil.store.frame_meta import cube_recipe
 from m2s2hil.store.session import FileRecord, FrameRecord, SessionStore
 
 
@@ -125,9 +125,8 @@ def _plan_frame(store: SessionStore, fr: FrameRecord, plan: _Plan, computer: Cub
             keep_cube = recomputed.tobytes() != np.asarray(cube, dtype=np.float32).tobytes()
         except M2S2Error:
             keep_cube = True
-    recipe = {"recipe": CUBE_RECIPE, "method": fr.meta.get("processing_method", store.sweep.processing),
-              "dark_id": fr.dark_id, "calibrated": fr.meta.get("calibration") is not None,
-              "stored": keep_cube}
+    recipe = cube_recipe(fr.meta.get("processing_method", store.sweep.processing), fr.dark_id,
+                         calibrated=fr.meta.get("calibration") is not None, stored=keep_cube)
     meta = {**fr.meta, "storage_format": "compressed", "cube": recipe}
     meta.pop("shape", None)
     text = EncodedJSON(dumps(meta))
@@ -186,8 +185,6 @@ def _plan_dark(store: SessionStore, d: Any, plan: _Plan, report: CompactReport) 
 def compact_session(root: str | Path, session_id: str) -> CompactReport:
     """Compact one session (see the module docstring); raises CompactError before anything
     is switched if the session or a new file is not right."""
-    from m2s2hil.store.atomic import write_files_atomic
-
     with SessionStore.open(root, session_id, mode="write") as store:
         report = CompactReport(store.session_id, bytes_before=_size(store))
         problems = [p for p in store.verify() if p.kind != "orphan"]

@@ -75,7 +75,7 @@ class CubeComputer:
         if recipe.get("calibrated") or fr.meta.get("calibration") is not None:
             raise CubeUnavailable(f"{store.session_id}/{event_id}: calibrated frame without its stored cube")
         method = str(recipe.get("method") or fr.meta.get("processing_method") or store.sweep.processing)
-        raw, _ = store.read_raw(event_id)
+        raw, _ = decode_tiff(store.read_file(fr.files["raw"]))  # read_raw would look the frame up again
         with self._lock:
             proc = self._processor(store, method, fr.dark_id)
             return np.array(proc.process(raw).cube, dtype=np.float32, copy=True)

@@ -177,6 +177,14 @@ def _session_json(store: SessionStore) -> dict[str, Any]:
     }
 
 
+def _refuse_clash(planned: list[Path], overwrite: bool) -> None:
+    """Checked before anything is written: no existing file is replaced unless ``overwrite``."""
+    clash = [] if overwrite else [p for p in planned if p.exists()]
+    if clash:
+        raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
+                          "use overwrite to replace them")
+
+
 def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *,
                    overwrite: bool = False) -> ExportResult:
     """Export every committed frame of ``store`` (see the module docstring)."""
@@ -209,10 +217,7 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     darks = [(d, dark_dir / Path(d.files["master"].path).name) for d in store.darks()]
     result = ExportResult(layout=layout, out=out)
     if layout == "hf":
-        clash = [p for p in [meta_json, *(t for _, t in darks)] if p.exists()]
-        if clash and not overwrite:
-            raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
-                              "use overwrite to replace them")
+        _refuse_clash([meta_json, *(t for _, t in darks)], overwrite)
         from m2s2hil.store.export_hf import HfExportError, export_hf
 
         try:
@@ -228,12 +233,8 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
             r["file"] = f"HIL/{sub.as_posix()}"
             r["file16"] = f"HIL16/{sub.as_posix()}"
         meta_csv = out / "metadata" / f"{store.session_id}.csv"
-        planned = [p for t in targets for p in t] + [meta_csv, meta_json] + [t for _, t in darks]
-        if not overwrite:
-            clash = [p for p in planned if p.exists()]
-            if clash:
-                raise ExportError(f"{clash[0]} already exists ({len(clash)} file(s) in the way); "
-                                  "use overwrite to replace them")
+        _refuse_clash([p for t in targets for p in t] + [meta_csv, meta_json] + [t for _, t in darks],
+                      overwrite)
         for fr, (p8, p16) in zip(frames, targets, strict=True):
             raw, _ = store.read_raw(fr.event_id)
             write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))

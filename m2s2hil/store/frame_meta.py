@@ -43,6 +43,12 @@ class MetadataConflict(UsageError):
                          "not by the caller")
 
 
+def cube_recipe(method: str, dark_id: str | None, *, calibrated: bool, stored: bool) -> dict[str, Any]:
+    """A frame's ``meta["cube"]``: how ``read_cube`` gets its cube (see the module docstring)."""
+    return {"recipe": CUBE_RECIPE, "method": method, "dark_id": dark_id, "calibrated": calibrated,
+            "stored": stored}
+
+
 def build_meta(store: Any, event: CaptureEvent, meta: Mapping[str, Any] | None, *, cube_stored: bool | None,
                **defaults: Any) -> tuple[dict[str, Any], EncodedJSON]:
     """(metadata as read back, its JSON text) of a frame (``cube_stored`` given) or a dark
@@ -69,8 +75,7 @@ def build_meta(store: Any, event: CaptureEvent, meta: Mapping[str, Any] | None, 
         "storage_format": store.rig.storage.format,
     }
     if cube_stored is not None:
-        full["cube"] = {"recipe": CUBE_RECIPE, "method": store.sweep.processing,
-                        "dark_id": full.get("dark_id"), "calibrated": given.get("calibration") is not None,
-                        "stored": cube_stored}
+        full["cube"] = cube_recipe(store.sweep.processing, full.get("dark_id"),
+                                   calibrated=given.get("calibration") is not None, stored=cube_stored)
     text = EncodedJSON(dumps(full))
     return json.loads(text), text

@@ -19,7 +19,12 @@ from m2s2hil.errors import UsageError
 
 
 class SidecarError(UsageError):
-    """A metadata sidecar that cannot be read; names the file."""
+    """A metadata sidecar that cannot be read; ``path`` names the file."""
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
 
 
 @dataclass(frozen=True)
@@ -44,9 +49,9 @@ def read_sidecars(root: Path) -> dict[str, Sidecar]:
             with csv_path.open(newline="", encoding="utf-8") as f:
                 rows = list(csv.DictReader(f))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, csv.Error) as exc:
-            raise SidecarError(f"{csv_path}: unreadable metadata sidecar: {exc}") from None
+            raise SidecarError(csv_path, f"unreadable metadata sidecar: {exc}") from None
         if not isinstance(info, dict):
-            raise SidecarError(f"{json_path}: expected a JSON object")
+            raise SidecarError(json_path, "expected a JSON object")
         for r in rows:
             if r.get("file"):
                 out[r["file"]] = Sidecar(r, info, meta_dir)
@@ -112,6 +117,6 @@ def darks(side: Sidecar) -> list[tuple[dict[str, Any], Path]]:
             continue
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
         if d.get("sha256") and digest != d["sha256"]:
-            raise SidecarError(f"{path}: sha256 does not match the session's metadata")
+            raise SidecarError(path, "sha256 does not match the session's metadata")
         out.append((d, path))
     return out

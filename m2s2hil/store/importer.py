@@ -163,9 +163,14 @@ def _read16(path: Path, bits: int | None) -> tuple[np.ndarray, int, str]:
     return img, bits, "png16"
 
 
+def _hil16(item: _Item) -> Path:
+    """Where the export put the lossless 16-bit twin of ``item``: ``HIL16/<same path>``."""
+    return item.path.parents[4] / "HIL16" / Path(*item.path.parts[-4:])
+
+
 def _read(item: _Item, sidecar: Sidecar | None = None) -> tuple[np.ndarray, int, str]:
     """(mosaic uint16, bit depth, format) of one file (its lossless HIL16 twin if there is one)."""
-    p16 = item.path.parents[4] / "HIL16" / Path(*item.path.parts[-4:])
+    p16 = _hil16(item)
     if not item.raw and p16.is_file():
         return _read16(p16, bit_depth(sidecar))
     if item.raw:
@@ -209,7 +214,7 @@ def import_dataset(path: str | Path, root: str | Path, layout: str = "m2s2", *,
     try:
         sidecars = read_sidecars(hil.parent)
     except SidecarError as exc:
-        raise DatasetImportError(str(exc).split(": ", 1)[0], str(exc).split(": ", 1)[-1]) from None
+        raise DatasetImportError(exc.path, exc.problem) from None
     groups: dict[tuple[str, str], list[_Item]] = {}
     for it in items:
         groups.setdefault((it.satellite, it.build), []).append(it)
@@ -268,7 +273,8 @@ def _import_group(staging: Path, sat: str, build: str, group: list[_Item], base_
     store = SessionStore.create(staging, sweep, rig, clock=clock)
     try:
         store.set_state("running")
-        _import_darks(store, group, sidecars)
+        _import_darks(store, sidecars)
+        dark_ids = {d.dark_id for d in store.darks()}
         for i, it in enumerate(group):
             side = sidecars.get(it.rel)
             mosaic, b, fmt = (first, bits, first_fmt) if i == 0 else _read(it, side)
@@ -282,7 +288,7 @@ def _import_group(staging: Path, sat: str, build: str, group: list[_Item], base_
                 raise DatasetImportError(it.path, f"azimuth index {az_i} is outside the {n_az} azimuths")
             nominal = sweep.azimuths()[az_i]
             ev = events[frame_event_id(it.lighting, it.elevation, nominal, f)]
-            src = it.path if fmt != "png16" else it.path.parents[4] / "HIL16" / Path(*it.path.parts[-4:])
+            src = it.path if fmt != "png16" else _hil16(it)
             meta = {
                 "source": "import",
                 "source_file": it.rel if fmt != "png16" else "HIL16/" + it.rel.split("/", 1)[1],
@@ -295,7 +301,7 @@ def _import_group(staging: Path, sat: str, build: str, group: list[_Item], base_
             else:
                 meta.update({"exposure_s": None, "gain": None, "exposure_known": False,
                              "pose_source": "nominal, from the file index", "dark_id": None})
-            if meta.get("dark_id") and meta["dark_id"] not in {d.dark_id for d in store.darks()}:
+            if meta.get("dark_id") and meta["dark_id"] not in dark_ids:
                 meta["dark_id"] = None  # its master dark was not exported with it
             store.write_frame(ev, mosaic, meta=meta)
         store.record_event("import", {"files": len(group), "bit_depth": bits, "width": w, "height": h,
@@ -306,7 +312,7 @@ def _import_group(staging: Path, sat: str, build: str, group: list[_Item], base_
         store.close()
 
 
-def _import_darks(store: SessionStore, group: list[_Item], sidecars: dict[str, Sidecar]) -> None:
+def _import_darks(store: SessionStore, sidecars: dict[str, Sidecar]) -> None:
     """Store the master darks the group's exported sessions came with, under their ids."""
     seen: dict[str, str] = {}  # dark id -> sha256 of its file
     sources = {id(s.session): s for s in sidecars.values()}
@@ -314,7 +320,7 @@ def _import_darks(store: SessionStore, group: list[_Item], sidecars: dict[str, S
         try:
             entries = import_meta.darks(side)
         except SidecarError as exc:
-            raise DatasetImportError(str(exc).split(": ", 1)[0], str(exc).split(": ", 1)[-1]) from None
+            raise DatasetImportError(exc.path, exc.problem) from None
         for d, path in entries:
             data = path.read_bytes()
             digest = hashlib.sha256(data).hexdigest()

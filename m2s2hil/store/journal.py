@@ -97,7 +97,12 @@ class JournalError(M2S2Error):
 
 
 class JournalDamaged(JournalError):
-    """The journal's database is damaged (``quick_check`` fails, or SQLite says malformed)."""
+    """The journal's database is damaged (``quick_check`` fails, or SQLite says malformed);
+    ``detail`` is what SQLite said."""
+
+    def __init__(self, message: str, detail: str | None = None) -> None:
+        super().__init__(message)
+        self.detail = message if detail is None else detail
 
 
 _DAMAGE_CODES = {11, 26}  # SQLITE_CORRUPT, SQLITE_NOTADB
@@ -161,7 +166,7 @@ class Journal:
         except sqlite3.DatabaseError as exc:
             self.close()
             if _is_damage(exc):
-                raise JournalDamaged(f"{self.path}: journal damaged ({exc})") from None
+                raise JournalDamaged(f"{self.path}: journal damaged ({exc})", str(exc)) from None
             raise JournalError(f"{self.path}: not a readable session journal ({exc})") from None
         if mode.lower() != "wal" and not (self.read_only and immutable):  # immutable reports "delete"
             self.close()
@@ -190,7 +195,7 @@ class Journal:
                 if isinstance(exc, sqlite3.OperationalError) and _is_full(exc):
                     raise DiskFull(self.path.parent, detail=str(exc)) from exc
                 if isinstance(exc, sqlite3.DatabaseError) and _is_damage(exc):
-                    raise JournalDamaged(f"{self.path}: journal damaged ({exc})") from None
+                    raise JournalDamaged(f"{self.path}: journal damaged ({exc})", str(exc)) from None
                 raise
 
     def query(self, sql: str, args: tuple = ()) -> list[sqlite3.Row]:
@@ -199,7 +204,7 @@ class Journal:
                 return self._db.execute(sql, args).fetchall()
             except sqlite3.DatabaseError as exc:
                 if _is_damage(exc):
-                    raise JournalDamaged(f"{self.path}: journal damaged ({exc})") from None
+                    raise JournalDamaged(f"{self.path}: journal damaged ({exc})", str(exc)) from None
                 raise
 
     def pragma(self, name: str) -> Any:

@@ -427,7 +427,7 @@ class SessionStore:
         try:
             j = Journal(path / JOURNAL, read_only=owner is None)
         except JournalDamaged as exc:
-            raise SessionDamaged(path, str(exc).split("journal damaged ", 1)[-1].strip("()")) from None
+            raise SessionDamaged(path, exc.detail) from None
         except JournalError as exc:
             raise SessionCorrupt(str(exc)) from None
         damage = j.check()
@@ -686,6 +686,11 @@ class SessionStore:
         return self._cubes.read(self, event_id)
 
     # ------------------------------------------------------------ integrity
+    def _stored(self) -> list[tuple[str, dict[str, FileRecord]]]:
+        """(event id, files) of every committed frame, then every dark."""
+        frames = [(fr.event_id, fr.files) for fr in self.frames()]
+        return frames + [(d.dark_id, d.files) for d in self.darks()]
+
     def _file_problem(self, rec: FileRecord, *, checksum: bool = True) -> Problem | None:
         p = self.path / rec.path
         if not p.is_file():
@@ -709,9 +714,7 @@ class SessionStore:
         if damage is not None:
             problems.append(Problem(JOURNAL, "journal", damage))
         known: set[str] = set()
-        recs = [f for fr in self.frames() for f in fr.files.values()]
-        recs += [f for d in self.darks() for f in d.files.values()]
-        for rec in recs:
+        for rec in (f for _, files in self._stored() for f in files.values()):
             known.add(rec.path)
             problem = self._file_problem(rec)
             if problem is not None:
@@ -736,25 +739,17 @@ class SessionStore:
         aside (its files into ``quarantine/``, its journal row into a ``quarantined``
         event; nothing is deleted) so the run captures it again. Returns the problems."""
         self._require_writer("check_stored")
-        bad: dict[str, list[Problem]] = {}
-        for fr in self.frames():
-            for rec in fr.files.values():
-                if (pr := self._file_problem(rec, checksum=checksum)) is not None:
-                    bad.setdefault(fr.event_id, []).append(pr)
-        for d in self.darks():
-            for rec in d.files.values():
-                if (pr := self._file_problem(rec, checksum=checksum)) is not None:
-                    bad.setdefault(d.dark_id, []).append(pr)
         out: list[Problem] = []
-        for event_id, probs in bad.items():
-            row = self.journal.query("SELECT files FROM frames WHERE event_id = ? UNION ALL "
-                                     "SELECT files FROM darks WHERE dark_id = ?", (event_id, event_id))
-            files = json.loads(row[0]["files"]) if row else {}
+        for event_id, files in self._stored():
+            probs = [pr for rec in files.values()
+                     if (pr := self._file_problem(rec, checksum=checksum)) is not None]
+            if not probs:
+                continue
             stamp = datetime.fromtimestamp(self.clock.wall(), UTC).strftime("%Y%m%dT%H%M%S")
             aside = self.path / "quarantine" / f"{_safe(event_id)}-{stamp}-{secrets.token_hex(2)}"
             moved = []
             for rec in files.values():
-                src = self.path / rec["path"]
+                src = self.path / rec.path
                 if src.is_file():
                     aside.mkdir(parents=True, exist_ok=True)
                     os.replace(src, aside / src.name)
@@ -801,10 +796,8 @@ class SessionStore:
         lost or damaged since it was written fails the run here, not in the dataset), the
         manifest, then the session's state (the very last step)."""
         self._require_writer("complete")
-        lost = [pr for fr in self.frames() for rec in fr.files.values()
+        lost = [pr for _, files in self._stored() for rec in files.values()
                 if (pr := self._file_problem(rec)) is not None]
-        lost += [pr for d in self.darks() for rec in d.files.values()
-                 if (pr := self._file_problem(rec)) is not None]
         if lost:
             raise StoreError(f"session {self.session_id}: {len(lost)} stored file(s) failed the final "
                              f"check ({lost[0]}); resume the session to capture them again")
