@@ -28,7 +28,7 @@ import numpy as np
 from m2s2hil.errors import UsageError
 from m2s2hil.plan import Sweep
 from m2s2hil.processing.calibration import CameraCalibration, load_calibration, save_calibration
-from m2s2hil.processing.dark import DarkLibrary, build_master_dark
+from m2s2hil.processing.dark import DarkLibrary, MasterDark, build_master_dark
 from m2s2hil.processing.demosaic import get_demosaicer
 from m2s2hil.processing.mosaic import MosaicLayout
 from m2s2hil.processing.stability import check_phase, phase_warning
@@ -79,6 +79,15 @@ def _snaps(rig: Rig, n: int, exposure_s: float, gain: float) -> tuple[np.ndarray
     return np.stack(frames), temps
 
 
+def _master_dark(rig: Rig, n: int, exposure_s: float, gain: float) -> MasterDark:
+    """``n`` frames (the lens capped by the caller) reduced as the rig file's processing says."""
+    proc = rig.config.processing
+    stack, temps = _snaps(rig, n, exposure_s, gain)
+    return build_master_dark(stack, reduce=proc.dark_reduce, exposure_s=exposure_s, gain=gain,
+                             temperature_c=temps, camera=rig.config.camera.model.name,
+                             tolerance_c=proc.dark_temperature_tolerance_c)
+
+
 def capture_dark_library(rig: Rig, library: DarkLibrary, exposures: list[tuple[float, float]], *,
                          n_frames: int | None = None) -> list[dict[str, Any]]:
     """Master darks for every (exposure, gain); returns their provenance (one entry each)."""
@@ -90,10 +99,7 @@ def capture_dark_library(rig: Rig, library: DarkLibrary, exposures: list[tuple[f
     rig.cap_lens(True)
     try:
         for exposure_s, gain in exposures:
-            stack, temps = _snaps(rig, n, exposure_s, gain)
-            master = build_master_dark(stack, reduce=proc.dark_reduce, exposure_s=exposure_s, gain=gain,
-                                       temperature_c=temps, camera=rig.config.camera.model.name,
-                                       tolerance_c=proc.dark_temperature_tolerance_c)
+            master = _master_dark(rig, n, exposure_s, gain)
             path = library.put(master)
             entry = master.provenance()
             entry["file"] = path.name
@@ -178,12 +184,9 @@ def _capture_white(
     if dark is None:
         rig.cap_lens(True)
         try:
-            dstack, dtemps = _snaps(rig, proc.dark_frames, exposure_s, gain)
+            dark = _master_dark(rig, proc.dark_frames, exposure_s, gain)
         finally:
             rig.cap_lens(False)
-        dark = build_master_dark(dstack, reduce=proc.dark_reduce, exposure_s=exposure_s, gain=gain,
-                                 temperature_c=dtemps, camera=model.name,
-                                 tolerance_c=proc.dark_temperature_tolerance_c)
     white = np.clip(mean_raw - dark.data.astype(np.float64), 0.0, None).astype(np.float32)
     check = check_white(mean_raw, white, rig)
     if not check.ok:

@@ -16,8 +16,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import urllib.parse
+from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from m2s2hil.config import AxisConfig, DeviceConfig, RigConfig, default_rig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
@@ -26,6 +27,9 @@ from m2s2hil.errors import ConfigError
 from m2s2hil.rig.open_errors import opening
 from m2s2hil.rig.opened import AXIS_ROLES, DeviceLink, Rig, link_for
 from m2s2hil.rig.origin import establish_origins
+
+if TYPE_CHECKING:
+    from m2s2hil.drivers.u3v import U3VCamera
 
 log = logging.getLogger(__name__)
 
@@ -176,6 +180,24 @@ def _connect_or_close(driver: Any) -> None:
         raise
 
 
+def open_camera(config: RigConfig, clock: Clock, sims: Mapping[str, Any]) -> U3VCamera:
+    """The rig file's camera: over the in-process simulator of a ``sim://`` port (from
+    ``sims``, as :func:`build_simulators` made them), else on USB; errors as RigOpenError."""
+    from m2s2hil.drivers.u3v import U3VCamera
+
+    cam_cfg = config.camera
+    with opening("camera", cam_cfg.port, "u3v"):
+        if cam_cfg.port.startswith("sim://"):
+            from m2s2hil.sim_config import camera_sim_name
+            from m2s2hil.simulators.u3v_backend import SimUsbBackend
+
+            toucan = sims[camera_sim_name(config)]
+            return U3VCamera.open(backend=SimUsbBackend(toucan), serial=toucan.serial, clock=clock,
+                                  timeout_s=cam_cfg.timeout_s, name="camera")
+        return U3VCamera.open(vendor_id=cam_cfg.vendor_id, product_id=cam_cfg.product_id,
+                              serial=cam_cfg.serial, clock=clock, timeout_s=cam_cfg.timeout_s, name="camera")
+
+
 def open_rig(
     config: RigConfig | None = None,
     *,
@@ -186,8 +208,6 @@ def open_rig(
     home: bool = True,
 ) -> Rig:
     """Open every device of ``config`` (default: the built-in simulated rig)."""
-    from m2s2hil.drivers.u3v import U3VCamera
-
     config = config or default_rig()
     calibration = None
     if config.camera.calibration_file is not None:
@@ -231,23 +251,7 @@ def open_rig(
                     lights = _open_lights(name, dev, clock)
                 opened.append(lights)
                 links.append(link_for(name, ("lights",), lights, lights.name))
-        cam_cfg = config.camera
-        cam_reg = _sim_name(cam_cfg.port)
-        if cam_reg is not None:
-            from m2s2hil.simulators.u3v_backend import SimUsbBackend
-
-            toucan = sims[cam_reg]
-            with opening("camera", cam_cfg.port, "u3v"):
-                camera = U3VCamera.open(
-                    backend=SimUsbBackend(toucan), serial=toucan.serial, clock=clock,
-                    timeout_s=cam_cfg.timeout_s, name="camera",
-                )
-        else:
-            with opening("camera", cam_cfg.port, "u3v"):
-                camera = U3VCamera.open(
-                    vendor_id=cam_cfg.vendor_id, product_id=cam_cfg.product_id, serial=cam_cfg.serial,
-                    clock=clock, timeout_s=cam_cfg.timeout_s, name="camera",
-                )
+        camera = open_camera(config, clock, sims)
         opened.append(camera)
         links.append(link_for(camera.name, ("camera",), camera))
         if home:

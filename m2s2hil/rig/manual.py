@@ -15,12 +15,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 from m2s2hil.errors import UsageError
-from m2s2hil.rig.opened import AXIS_ROLES, Rig
-
-AxisRole = Literal["turntable", "tilt"]
+from m2s2hil.rig.opened import AXIS_ROLES, AxisRole, Rig
 
 
 class ManualCommandError(UsageError):

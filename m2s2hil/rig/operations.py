@@ -26,8 +26,6 @@ from m2s2hil.rig.opened import AXIS_ROLES, AxisRole, DeviceLink, Rig, Role
 
 log = logging.getLogger(__name__)
 
-ROLES = AXIS_ROLES
-
 
 @dataclass
 class SafeReport:
@@ -44,7 +42,7 @@ class RigOps:
         self._lamp_names = {lamp.channel: name for name, lamp in rig.config.lamps.items()}
         self._on_since: dict[int, float] = {}
         self._lit: frozenset[int] | None = None  # None: unknown (start, after a fault)
-        self._pose: dict[str, float | None] = dict.fromkeys(ROLES)
+        self._pose: dict[str, float | None] = dict.fromkeys(AXIS_ROLES)
         self._moved_at = -1e18  # clock time the last move ended
         self.lens_capped = False
 
@@ -69,7 +67,7 @@ class RigOps:
             self._lit = None
             self._on_since.clear()  # a lamp may have dropped out: warm it up again
         if pose:
-            self._pose = dict.fromkeys(ROLES)
+            self._pose = dict.fromkeys(AXIS_ROLES)
 
     # -- lamps -----------------------------------------------------------------------
     def set_lamps(self, channels: frozenset[int]) -> bool:
@@ -192,7 +190,7 @@ class RigOps:
                 if r not in switched:
                     self.rig.axis(r).position()  # re-read from the controller; the retried move verifies
         # Homing may move every axis on the controller: trust no remembered position.
-        self._pose = dict.fromkeys(ROLES)
+        self._pose = dict.fromkeys(AXIS_ROLES)
         return roles
 
     # -- safe state ------------------------------------------------------------------

@@ -166,17 +166,14 @@ def set_origin(config: RigConfig, role: str, *, clock: Clock = SYSTEM_CLOCK,
     if path is None:
         raise UsageError("the rig has no file to keep its state next to: pass --rig FILE")
     state = RigState.load(path)
-    if dev.protocol == "grbl":
-        origin = _set_grbl_origin(ax, dev, role, clock)
-    else:
-        origin = _set_zaber_origin(ax, dev, role, clock)
+    origin = _set_grbl_origin(ax, dev, clock) if dev.protocol == "grbl" else _set_zaber_origin(ax, dev, clock)
     state.rig = config.rig.name
     state.origins[role] = origin
     state.save(path)
     return origin
 
 
-def _set_grbl_origin(ax: AxisConfig, dev: Any, role: str, clock: Clock) -> AxisOrigin:
+def _set_grbl_origin(ax: AxisConfig, dev: Any, clock: Clock) -> AxisOrigin:
     from m2s2hil.drivers.grbl import GrblController
 
     ctl = GrblController(dev.port, device=ax.device, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
@@ -222,7 +219,7 @@ def _grbl_origin_on(ctl: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
     return AxisOrigin(ax.device, "grbl", letter, _grbl_identity(ctl), float(g54[i]), _now())
 
 
-def _set_zaber_origin(ax: AxisConfig, dev: Any, role: str, clock: Clock) -> AxisOrigin:
+def _set_zaber_origin(ax: AxisConfig, dev: Any, clock: Clock) -> AxisOrigin:
     from m2s2hil.drivers.zaber import ZaberDevice
 
     zd = ZaberDevice(dev.port, device=ax.device, address=dev.unit, baudrate=dev.baudrate,

@@ -311,22 +311,12 @@ def _probe_relays(name: str, dev: DeviceConfig, config: RigConfig, clock: Clock,
 
 
 def _probe_camera(config: RigConfig, clock: Clock, sims: dict[str, Any], report: ProbeReport) -> None:
-    from m2s2hil.drivers.u3v import U3VCamera
     from m2s2hil.protocols.u3v_bootstrap import ABRM
+    from m2s2hil.rig.factory import open_camera
 
     cam_cfg = config.camera
     model = cam_cfg.model
-    with opening("camera", cam_cfg.port, "u3v"):
-        if cam_cfg.port.startswith("sim://"):
-            from m2s2hil.simulators.u3v_backend import SimUsbBackend
-
-            toucan = sims[cam_cfg.port.removeprefix("sim://").strip("/")]
-            cam = U3VCamera.open(backend=SimUsbBackend(toucan), serial=toucan.serial, clock=clock,
-                                 timeout_s=cam_cfg.timeout_s, name="camera")
-        else:
-            cam = U3VCamera.open(vendor_id=cam_cfg.vendor_id, product_id=cam_cfg.product_id,
-                                 serial=cam_cfg.serial, clock=clock, timeout_s=cam_cfg.timeout_s,
-                                 name="camera")
+    cam = open_camera(config, clock, sims)
     try:
         with opening("camera", cam_cfg.port, "u3v"):
             vendor = cam.control.read_string(ABRM.MANUFACTURER_NAME)

@@ -20,7 +20,7 @@ from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.errors import UsageError
 from m2s2hil.processing.demosaic import get_demosaicer
 from m2s2hil.processing.display import false_colour
-from m2s2hil.rig.opened import Rig
+from m2s2hil.rig.opened import AXIS_ROLES, Rig
 from m2s2hil.store.atomic import write_files_atomic
 from m2s2hil.store.frame_files import dumps, encode_png, encode_raw
 
@@ -47,9 +47,9 @@ def frame_metadata(rig: Rig, frame: Frame, note: str = "") -> dict[str, Any]:
         "bands_nm": list(cfg.camera.model.bands_nm), "rig": cfg.rig.name, "rig_digest": cfg.digest,
         "note": note,
     }
-    for role in ("turntable", "tilt"):
+    for role in AXIS_ROLES:
         try:
-            meta[f"{role}_deg"] = float(rig.axis(role).position())  # type: ignore[arg-type]
+            meta[f"{role}_deg"] = float(rig.axis(role).position())
         except Exception as exc:  # the frame is still worth keeping
             meta[f"{role}_deg"] = None
             meta[f"{role}_error"] = f"{type(exc).__name__}: {exc}"
