@@ -89,6 +89,13 @@ def test_kill_9_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path) -
         assert len(frame_ids) == len(set(frame_ids))  # none twice
         assert [d.dark_id for d in store.darks()] == [e.event_id for e in planned if e.kind == "dark"]
         assert store.verify() == []  # checksums valid, no orphans left by the killed writer
+        # frames corrected after the resume record the same dark provenance as those before it
+        # (the dark reloaded from the journal, read noise and all)
+        by_dark: dict[str, list[dict]] = {}
+        for f in store.frames():
+            by_dark.setdefault(f.dark_id, []).append(f.meta["dark"])
+        assert all(p == ps[0] for ps in by_dark.values() for p in ps)
+        assert any(p["read_noise_dn"] is not None for ps in by_dark.values() for p in ps)
         assert store.state == "completed" and interrupted_sessions(root) == []
         # the resumed run captured exactly what was missing
         resumed = [e["payload"] for e in store.events() if e["kind"] == "run_started"]

@@ -27,9 +27,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal, cast
-
-import numpy as np
+from typing import Any
 
 from m2s2hil.engine.exposure import CameraControl
 from m2s2hil.plan import CaptureEvent, Sweep, dark_event, dark_event_id
@@ -102,21 +100,12 @@ class SessionDarks:
         return self.capture(dark_event(exposure_s, gain, self.sweep.dark.frames))
 
     def load(self, rec: DarkRecord) -> Dark:
-        """A dark the store holds."""
-        from m2s2hil.processing.dark import MasterDark
+        """A dark the store holds (as the store rebuilds it for computed cubes, provenance and all)."""
+        from m2s2hil.store.cubes import master_dark_of
 
-        m = rec.meta
-        # Stored as uint16 (float32 in legacy sessions); ours are whole DN (rounded at build time).
-        data = np.clip(np.rint(self.store.load_dark(rec.dark_id)), 0, 65535).astype(np.uint16)
         if rec.reduce not in ("mean", "median"):
             raise ValueError(f"dark {rec.dark_id}: unknown reduction {rec.reduce!r} in the journal")
-        master = MasterDark(
-            data=data, created=str(m.get("created", "")),
-            camera_serial=str(m.get("camera_serial", "unknown")), n_frames=rec.n_frames,
-            exposure_s=rec.exposure_s, gain=rec.gain, temperature_c=float(m.get("temperature_c", math.nan)),
-            reduce=cast(Literal["mean", "median"], rec.reduce),
-        )
-        dark = self._darks[rec.dark_id] = Dark(rec.dark_id, master)
+        dark = self._darks[rec.dark_id] = Dark(rec.dark_id, master_dark_of(self.store, rec))
         self._alias[dark_event_id(rec.exposure_s, rec.gain)] = rec.dark_id
         return dark
 

@@ -30,12 +30,17 @@ def cube_is_stored(storage: Any, meta: dict) -> bool:
 
 def master_dark(store: Any, dark_id: str) -> Any:
     """The session's master dark ``dark_id`` as processing uses it (uint16 whole DN)."""
-    from m2s2hil.processing.dark import MasterDark
-
     rec = next((d for d in store.darks() if d.dark_id == dark_id), None)
     if rec is None:
         raise CubeUnavailable(f"session {store.session_id} has no dark {dark_id!r}")
-    data = np.clip(np.rint(store.load_dark(dark_id)), 0, 65535).astype(np.uint16)
+    return master_dark_of(store, rec)
+
+
+def master_dark_of(store: Any, rec: Any) -> Any:
+    """The master dark of the journal's dark record ``rec``, with the provenance it was stored with."""
+    from m2s2hil.processing.dark import MasterDark
+
+    data = np.clip(np.rint(store.load_dark(rec.dark_id)), 0, 65535).astype(np.uint16)
     m = rec.meta
     temperature = m.get("temperature_c")
     return MasterDark(data=data, created=str(m.get("created", "")),
