@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from m2s2hil.simulators.scene import Scene, SceneError, SceneParams, Shaded
 from m2s2hil.simulators.sensor import Sensor, SensorParams
-from m2s2hil.simulators.targets import white_panel_rate
+from m2s2hil.simulators.targets import white_panel_pattern, white_panel_rate
 
 MaterialsOfBuild = Callable[[str, str], Sequence[str]] | Mapping[Any, Any]
 
@@ -129,6 +129,7 @@ class SimFrameSource:
         self._truth: FrameTruth | None = None
         self._no_labels = np.zeros((height, width), dtype=np.uint8)
         self._no_labels.flags.writeable = False
+        self._panel: np.ndarray | None = None  # the white panel's per-pixel pattern, made when first seen
 
     @property
     def band_response(self) -> np.ndarray:
@@ -204,8 +205,9 @@ class SimFrameSource:
             if cap:
                 frame = self.sensor.expose(None, exposure_s, gain, temp)
             elif target == "white_panel":
-                panel = white_panel_rate(self.band_response, self.sensor.band_map(), lamps, w.lamp_info, spot,
-                                         self.scene.params.lighting)
+                if self._panel is None:  # per camera, not per frame (~80 ms at 2048²)
+                    self._panel = white_panel_pattern(self.band_response, self.sensor.band_map())
+                panel = white_panel_rate(self._panel, lamps, w.lamp_info, spot, self.scene.params.lighting)
                 frame = self.sensor.expose(panel, exposure_s, gain, temp)
             else:
                 for i, p in enumerate(poses):

@@ -20,17 +20,24 @@ WHITE_REFLECTANCE = 0.99
 FALLOFF = 0.12
 
 
-def white_panel_rate(
-    band_response: np.ndarray, band_map: np.ndarray, lamp_output: Mapping[int, float],
-    lamp_info: Mapping[int, Any], spot_angle_deg: float, params: LightingParams,
-    reflectance: float = WHITE_REFLECTANCE,
-) -> np.ndarray:
-    """(H, W) float32 electrons/s per pixel for the panel under the lit lamps."""
-    lights = lights_from_lamps(lamp_output, lamp_info, spot_angle_deg, params)
-    facing = float(np.sum(lights.irradiance * np.maximum(lights.dirs[:, 2], 0.0))) + lights.ambient
+def white_panel_pattern(band_response: np.ndarray, band_map: np.ndarray) -> np.ndarray:
+    """(H, W) float32: each pixel's band response times the radial fall-off. It depends on the
+    camera alone, so a frame source works it out once and scales it per frame."""
     h, w = band_map.shape
     y = np.linspace(-1.0, 1.0, h, dtype=np.float32)[:, None]
     x = np.linspace(-1.0, 1.0, w, dtype=np.float32)[None, :]
     field = 1.0 - np.float32(FALLOFF / 2.0) * (x * x + y * y)
-    per_band = np.asarray(band_response, dtype=np.float32) * np.float32(reflectance * facing)
-    return (per_band[band_map] * field).astype(np.float32)
+    pattern = (np.asarray(band_response, dtype=np.float32)[band_map] * field).astype(np.float32)
+    pattern.flags.writeable = False
+    return pattern
+
+
+def white_panel_rate(
+    pattern: np.ndarray, lamp_output: Mapping[int, float], lamp_info: Mapping[int, Any],
+    spot_angle_deg: float, params: LightingParams, reflectance: float = WHITE_REFLECTANCE,
+) -> np.ndarray:
+    """(H, W) float32 electrons/s per pixel for the panel under the lit lamps; ``pattern`` from
+    :func:`white_panel_pattern`."""
+    lights = lights_from_lamps(lamp_output, lamp_info, spot_angle_deg, params)
+    facing = float(np.sum(lights.irradiance * np.maximum(lights.dirs[:, 2], 0.0))) + lights.ambient
+    return pattern * np.float32(reflectance * facing)

@@ -104,6 +104,28 @@ def test_lens_cap_gives_no_scene_signal(world, source):
     assert lit[mockup].mean() > capped[mockup].mean() + 100
 
 
+def test_white_panel_fills_the_view_falls_off_to_the_corners_and_follows_the_lamps(world, source):
+    with pytest.raises(ValueError, match="unknown target"):
+        world.set_target("grey_card")
+    world.set_target("white_panel")
+    dark = source.sensor.expected_dark_dn(0.004, 1.0, world.sensor_temperature_c)
+
+    def signal() -> np.ndarray:
+        return source.capture(0.004).astype(np.float64) - dark
+
+    bright = signal()
+    assert not source.truth().labels.any()  # no mockup in view
+    assert bright.min() > 50 and bright.max() < 0.9 * MODEL.full_scale  # lit everywhere, unsaturated
+    # 1 - 0.06 (x² + y²) over x, y in [-1, -0.75] (a 32-pixel corner of 256) against the centre
+    assert bright[:32, :32].mean() / bright[112:144, 112:144].mean() == pytest.approx(0.909, abs=0.015)
+    world.set_lamp(3, False)
+    world.set_lamp(4, False)
+    assert signal().mean() < 0.85 * bright.mean()  # the second frame reuses the panel's pattern
+    world.set_target("mockup")
+    source.capture(0.004)
+    assert source.truth().labels.any()
+
+
 def test_sensor_temperature_raises_the_dark_level(world, source):
     world.set_lens_cap(True)
     world.sensor_temperature_c = 25.0

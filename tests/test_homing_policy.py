@@ -16,7 +16,7 @@ from m2s2hil.config import load_rig
 from m2s2hil.rig.factory import open_rig
 from m2s2hil.rig.open_errors import EXIT_UNUSABLE, RigOpenError
 from m2s2hil.rig.operations import RigOps
-from m2s2hil.rig.origin import RigState, set_origin, state_path
+from m2s2hil.rig.origin import AxisOrigin, RigState, set_origin, state_path
 from m2s2hil.rig.pty_serve import SimServer
 
 
@@ -94,22 +94,23 @@ def test_an_origin_changed_behind_our_back_is_refused(factory_grbl):
     assert info.value.cause == "position unknown" and "recorded one 0" in str(info.value)
 
 
-def test_homing_enabled_on_a_controller_the_rig_says_has_no_switches(tmp_path):
-    cfg = load_rig(write_rig(tmp_path / "src.toml", homing="none", switches_in_sim=True))
-    with SimServer(cfg) as srv:
+def _open_error(tmp_path: Path, **rig: object) -> RigOpenError:
+    """Why opening the rig written with ``rig`` options, served on ptys, is refused."""
+    with SimServer(load_rig(write_rig(tmp_path / "src.toml", **rig))) as srv:
         rig_file = _served(tmp_path, srv)
         with pytest.raises(RigOpenError) as info:
             open_rig(load_rig(rig_file))
-    assert info.value.cause == "alarm" and "$22=1" in str(info.value)
+    return info.value
+
+
+def test_homing_enabled_on_a_controller_the_rig_says_has_no_switches(tmp_path):
+    err = _open_error(tmp_path, homing="none", switches_in_sim=True)
+    assert err.cause == "alarm" and "$22=1" in str(err)
 
 
 def test_switches_in_the_rig_file_but_homing_off_in_the_controller(tmp_path):
-    cfg = load_rig(write_rig(tmp_path / "src.toml", homing="switches", switches_in_sim=False))
-    with SimServer(cfg) as srv:
-        rig_file = _served(tmp_path, srv)
-        with pytest.raises(RigOpenError) as info:
-            open_rig(load_rig(rig_file))
-    assert info.value.cause == "homing disabled" and "error:5" in str(info.value)
+    err = _open_error(tmp_path, homing="switches", switches_in_sim=False)
+    assert err.cause == "homing disabled" and "error:5" in str(err)
 
 
 def test_alarm_recovery_without_switches_unlocks_and_rereads_never_homes(tmp_path):
@@ -136,6 +137,9 @@ def test_alarm_recovery_without_switches_unlocks_and_rereads_never_homes(tmp_pat
 def test_state_file_round_trip_and_a_broken_one_is_a_clear_error(tmp_path):
     path = tmp_path / "x.state.json"
     assert RigState.load(path).origins == {}
+    origin = AxisOrigin("stage", "grbl", "X", "GRBL 1.1h.20190830", 37.0, "2026-12-01T00:00:00Z")
+    RigState(rig="bench", origins={"turntable": origin}).save(path)
+    assert RigState.load(path) == RigState(rig="bench", origins={"turntable": origin})
     path.write_text("{not json")
     with pytest.raises(Exception) as info:
         RigState.load(path)

@@ -8,6 +8,7 @@ simulated camera behind it still answers, so the run can go on once the operator
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import subprocess
 import sys
@@ -64,11 +65,11 @@ def order_ok(seq: list[tuple[str, Any]]) -> None:
 
 
 # ---------------------------------------------------------------------------- engine
-@pytest.fixture
-def real_engine(tmp_path: Path) -> Iterator[Any]:
+@contextlib.contextmanager
+def engine_on_real_rig(tmp_path: Path, sweep: Any) -> Iterator[Any]:
+    """(rig, store, engine) for session ``s1`` on a rig opened as a real one; all closed after."""
     cfg = small_rig_config()
     rig = as_real(open_simulated_rig(cfg))
-    sweep = small_sweep()
     store = SessionStore.create(tmp_path, sweep, cfg, session_id="s1", clock=rig.clock)
     engine = make_engine(rig, store, sweep)
     try:
@@ -79,6 +80,12 @@ def real_engine(tmp_path: Path) -> Iterator[Any]:
             engine.wait(30)
         store.close()
         rig.close()
+
+
+@pytest.fixture
+def real_engine(tmp_path: Path) -> Iterator[Any]:
+    with engine_on_real_rig(tmp_path, small_sweep()) as got:
+        yield got
 
 
 def test_real_rig_waits_for_the_operator_around_the_darks(real_engine):
@@ -255,13 +262,8 @@ def test_cli_non_interactive_real_camera_refused(tmp_path):
 def test_dark_needed_mid_unit_is_capped_and_the_unit_captured_again(tmp_path):
     """Auto exposure picks exposures the planned darks do not cover: each such dark parks for
     the cap and the uncap, then its unit is captured again (lamps and pose re-commanded)."""
-    cfg = small_rig_config()
-    rig = as_real(open_simulated_rig(cfg))
-    sweep = small_sweep(exposure="auto")
-    store = SessionStore.create(tmp_path, sweep, cfg, session_id="s1", clock=rig.clock)
-    engine = make_engine(rig, store, sweep)
     waits: list[bool] = []
-    try:
+    with engine_on_real_rig(tmp_path, small_sweep(exposure="auto")) as (_rig, store, engine):
         engine.start()
         while engine.state.active:
             wait = engine.lens_wait
@@ -280,12 +282,6 @@ def test_dark_needed_mid_unit_is_capped_and_the_unit_captured_again(tmp_path):
         for f in frames:  # every frame's dark is at its own exposure, lamps were on again for it
             assert f.dark_id.startswith(f"dark/{round(f.meta['exposure_s'] * 1e6):d}us"), f
             assert f.meta["lamps_on"], f.meta
-    finally:
-        if engine.state.active:
-            engine.abort()
-            engine.wait(30)
-        store.close()
-        rig.close()
 
 
 @pytest.mark.slow

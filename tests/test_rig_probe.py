@@ -65,19 +65,25 @@ def test_homing_setting_against_the_axis_policy(tmp_path):
     assert sims["stage"].settings[22] == 0
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
+def _cli(*args: str, answer: str | None = None) -> subprocess.CompletedProcess:
+    """``m2s2hil ARGS`` in a child interpreter; ``answer`` is typed at its prompt."""
     code = "import sys; from m2s2hil.cli import main; sys.argv[0] = 'm2s2hil'; main()"
     env = {**os.environ, "COLUMNS": "300"}  # rich would wrap the table at 80 columns
-    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120,
-                          env=env)
+    return subprocess.run([sys.executable, "-c", code, *args], input=answer, capture_output=True, text=True,
+                          timeout=120, env=env)
+
+
+def _served(tmp_path: Path, srv: SimServer) -> Path:
+    served = tmp_path / "served.toml"
+    served.write_text(srv.rig_toml())
+    return served
 
 
 @pytest.mark.slow
 def test_low_max_rate_is_flagged_and_apply_fixes_it_over_a_pty(tmp_path):
     config = load_rig(_low_rate_rig(tmp_path))
     with SimServer(config) as srv:
-        served = tmp_path / "served.toml"
-        served.write_text(srv.rig_toml())
+        served = _served(tmp_path, srv)
         res = _cli("rig", "probe", str(served))
         assert res.returncode == EXIT_MISMATCH, res.stderr
         line = next(ln for ln in res.stdout.splitlines() if "$110" in ln)
@@ -94,12 +100,7 @@ def test_low_max_rate_is_flagged_and_apply_fixes_it_over_a_pty(tmp_path):
 def test_apply_asks_first_and_no_answer_writes_nothing(tmp_path):
     config = load_rig(_low_rate_rig(tmp_path))
     with SimServer(config) as srv:
-        served = tmp_path / "served.toml"
-        served.write_text(srv.rig_toml())
-        code = "import sys; from m2s2hil.cli import main; sys.argv[0] = 'm2s2hil'; main()"
-        res = subprocess.run([sys.executable, "-c", code, "rig", "probe", str(served), "--apply"],
-                             input="n\n", capture_output=True, text=True, timeout=120,
-                             env={**os.environ, "COLUMNS": "300"})
+        res = _cli("rig", "probe", str(_served(tmp_path, srv)), "--apply", answer="n\n")
         assert "write stage $110=3600" in res.stdout
         assert res.returncode == EXIT_MISMATCH
         assert srv.sims["stage"].settings[110] == LOW

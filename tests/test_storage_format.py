@@ -179,14 +179,14 @@ def test_engine_frames_recompute_to_the_cube_the_engine_computed(tmp_path):
         computer = CubeComputer()
         for fr in frames:
             stored = tifffile.imread(io.BytesIO(store.read_file(fr.files["cube"])))
-            recomputed = computer.read(_without_cube(store, fr.event_id), fr.event_id)
+            recomputed = computer.read(_without_cube(store), fr.event_id)
             assert recomputed.tobytes() == stored.tobytes()
 
 
 class _without_cube:
     """A read view of a store whose frames hide their stored cube (forces recomputation)."""
 
-    def __init__(self, store: SessionStore, event_id: str) -> None:
+    def __init__(self, store: SessionStore) -> None:
         self._s = store
 
     def __getattr__(self, name: str):
@@ -257,3 +257,22 @@ def test_previews_are_jpeg_in_the_compressed_format_and_png_in_the_legacy_one(tm
         else:  # a quick-look: close to what the engine rendered, RGB order kept
             assert err.mean() < 3.0 and err.max() < 40
         st.close()
+
+
+def test_a_stored_dark_comes_back_with_the_provenance_it_was_stored_with(tmp_path):
+    """A resumed run (engine.darks.SessionDarks.load) and computed cubes rebuild the master dark
+    from the journal: same pixels, same provenance, read noise included (its low-light check)."""
+    from m2s2hil.store.cubes import master_dark
+
+    st = SessionStore.create(tmp_path / "d", sweep(), rig_with(), session_id="r")
+    ev = next(e for e in st.sweep.expand(st.rig) if e.kind == "dark")
+    master = build_master_dark(dark_frames(), exposure_s=ev.exposure_s, gain=ev.gain,
+                               temperature_c=30.0, created=datetime(2026, 12, 1, tzinfo=UTC))
+    assert master.read_noise_dn is not None
+    st.write_dark(ev, master.data, meta=master.provenance())
+    back = master_dark(st, ev.event_id)
+    assert np.array_equal(back.data, master.data) and back.provenance() == master.provenance()
+    """A resumed run (engine.darks.SessionDarks.load) and computed cubes rebuild the master dark
+    from the journal: same pixels, same provenance, read noise included (its low-light check)."""
+    from m2s2hil.store.cubes import master_dark
+    st.close()
