@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from m2s2hil.analysis.qc import capture_qc_hook
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.engine.build import build_run
 from m2s2hil.engine.marks import run_up_deg
@@ -102,7 +103,7 @@ def run_session(cfg: RigConfig, sweep: Sweep, root: Path, *, qc: bool = False,
     (the engine figures are recorded without it, `capture`'s with it)."""
     rig = open_simulated_rig(cfg)
     try:
-        engine = build_run(rig, root, sweep=sweep, options=options, capture_qc=qc)
+        engine = build_run(rig, root, sweep=sweep, options=options, qc=capture_qc_hook() if qc else None)
         t = time.perf_counter()
         status = engine.run()
         wall = time.perf_counter() - t
@@ -132,7 +133,8 @@ def bench_build(size: int, tmp: Path) -> dict:
 
 
 def bench_stream(size: int, tmp: Path, seconds: float = 60.0) -> dict:
-    from m2s2hil.simulators.toucan import GradientSource, ToucanCamera
+    from m2s2hil.simulators.toucan import ToucanCamera
+    from m2s2hil.simulators.toucan_render import GradientSource
 
     cfg = rig_config(size)
     sweep = Sweep(satellite="voyager", build="B3", lighting=["weak"], tilts=["E1"], mode="continuous",
@@ -143,7 +145,7 @@ def bench_stream(size: int, tmp: Path, seconds: float = 60.0) -> dict:
     assert isinstance(cam_sim, ToucanCamera)
     cam_sim.frame_source = GradientSource(size, size, cfg.camera.model.bit_depth)
     try:
-        engine = build_run(rig, tmp / "stream", sweep=sweep, capture_qc=False,
+        engine = build_run(rig, tmp / "stream", sweep=sweep, qc=capture_qc_hook(),
                            options=EngineOptions.of(speed_dps=speed, save_truth=False))
         store = engine.store
         with RssSampler() as rss:

@@ -18,16 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from m2s2hil.analysis.evaluate import (
-    EvalOptions,
-    collect_jobs,
-    evaluate_jobs,
-    machine,
-    simulate_session,
-    stability_study,
-    write_evaluation,
-)
+from m2s2hil.analysis.evaluation.aggregates import machine
+from m2s2hil.analysis.evaluation.evaluate import evaluate_jobs
+from m2s2hil.analysis.evaluation.jobs import collect_jobs
+from m2s2hil.analysis.evaluation.options import EvalOptions
 from m2s2hil.analysis.qc import QcConfig, capture_stability
+from m2s2hil.analysis.report.evaluation_files import write_evaluation
+from m2s2hil.analysis.study.stability import simulate_session, stability_study
 
 
 def bench_qc(repeats: int = 7) -> None:

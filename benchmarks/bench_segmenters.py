@@ -8,7 +8,7 @@ it segments, and what it costs (results: docs/evaluation.md, "How many materials
     .venv/bin/python benchmarks/bench_segmenters.py run --size 2048 --out bench-out/segmenters-2048 \
         --only "BIC, all pixels (old default)" --only "+ brightness feature, merge 1.5° (new default)"
 
-Frames: ``analysis.simframes.simulated_frames`` (the simulator's frame source with its ground
+Frames: ``analysis.study.simframes.simulated_frames`` (the simulator's frame source with its ground
 truth) for every satellite × build × lighting × tilt of the catalog (3 × 3 × 3 × 3 = 81 scenes) at
 two turntable angles (30°, 200°): 162 frames, on a ``--size``² sensor (default 1024: 256²
 super-pixel cubes), cached as .npz under ``--cache``/<size>. K is compared with
@@ -35,7 +35,7 @@ OLD_DEFAULT: dict[str, Any] = {"fit_pixels": "all", "foreground": "otsu", "brigh
 
 def cache_frames(folder: Path, size: int, azimuths: tuple[float, ...] = (30.0, 200.0)) -> int:
     """Render the frames missing from ``folder`` (one .npz each); returns how many were rendered."""
-    from m2s2hil.analysis.simframes import simulated_frames, visible_materials
+    from m2s2hil.analysis.study.simframes import simulated_frames, visible_materials
 
     folder.mkdir(parents=True, exist_ok=True)
     have = [p.stem for p in folder.glob("*.npz")]
@@ -63,7 +63,7 @@ def load_frames(folder: Path) -> list[dict[str, Any]]:
 def candidates() -> dict[str, Callable[[dict[str, Any]], Any]]:
     """name -> f(frame) returning a label map. All share the Otsu foreground and unit spectra
     unless named otherwise; ``catalog K`` is told the build's material count (not a selector)."""
-    from m2s2hil.analysis.spectral import SpectralSegmenter
+    from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
 
     def spectral(**kw: Any) -> Callable[[dict[str, Any]], Any]:
         seg = SpectralSegmenter(**kw)
@@ -98,7 +98,7 @@ def merge_by_valley_test(f: dict[str, Any], ratio: float = 0.5) -> np.ndarray:
     above ``ratio`` × the smaller mode (a unimodal pair is one material drawn out by shading)."""
     from scipy import ndimage
 
-    from m2s2hil.analysis.spectral import SpectralSegmenter, features_of
+    from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, features_of
 
     labels = SpectralSegmenter(**OLD_DEFAULT).segment(f["cube"])
     unit = features_of(f["cube"])  # unit-length spectra
@@ -134,8 +134,8 @@ def evaluate_candidates(frames: list[dict[str, Any]], names: list[str] | None = 
     """Per candidate: K error against the visible materials, macro Dice, seconds per image."""
     from threadpoolctl import threadpool_limits
 
-    from m2s2hil.analysis.metrics import score_clusters
-    from m2s2hil.analysis.simframes import visible_materials
+    from m2s2hil.analysis.metrics.scores import score_clusters
+    from m2s2hil.analysis.study.simframes import visible_materials
 
     rows = []
     for name, fn in candidates().items():

@@ -172,7 +172,7 @@ def run_build(fmt: str, root: Path, sweep: Sweep) -> dict:
     rig = open_simulated_rig(cfg)
     try:
         # the one builder of a run; capture-time QC off: this measures storage, in both formats alike
-        engine = build_run(rig, root, sweep=sweep, capture_qc=False)
+        engine = build_run(rig, root, sweep=sweep)
         store = engine.store
         t = time.perf_counter()
         st = engine.run()

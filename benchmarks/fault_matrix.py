@@ -168,7 +168,7 @@ def _stage_moving(rig: Any) -> bool:
 def check_invariants(root: Path, session_id: str, *, state: str, code: int, expected: frozenset[str],
                      rig: Any = None) -> list[str]:
     """Every broken invariant, one line each (empty: the cell holds)."""
-    from m2s2hil.store.atomic import TMP_MARK
+    from m2s2hil.atomic import TMP_MARK
     from m2s2hil.store.session import SessionStore
 
     bad: list[str] = []
@@ -256,7 +256,7 @@ def _run(rig: Any, root: Path, *, sweep: Any = None, resume: str | None = None) 
     from m2s2hil.commands.capture import _run_engine
     from m2s2hil.engine.build import build_run
 
-    engine = build_run(rig, root, sweep=sweep, resume=resume, capture_qc=False)
+    engine = build_run(rig, root, sweep=sweep, resume=resume)
     code = _run_engine(engine, virtual=True)
     return engine, code
 
@@ -291,7 +291,8 @@ CHILD = textwrap.dedent("""
     from m2s2hil.engine.build import build_run
     from m2s2hil.engine.state import FrameStored
     from m2s2hil.rig.factory import open_simulated_rig
-    from m2s2hil.store import atomic, journal
+    from m2s2hil import atomic
+    from m2s2hil.store import journal
 
     point = {point!r}
     die = lambda: os.kill(os.getpid(), signal.SIGKILL)
@@ -309,8 +310,7 @@ CHILD = textwrap.dedent("""
             return tmp
         atomic._write_temp = temp_then_die
     rig = open_simulated_rig(small_rig_config({size}))
-    engine = build_run(rig, {root!r}, sweep=small_sweep(azimuth_step_deg={step}), session_id="killed",
-                       capture_qc=False)
+    engine = build_run(rig, {root!r}, sweep=small_sweep(azimuth_step_deg={step}), session_id="killed")
     if point == "after_2_frames":
         n = []
         engine.subscribe(lambda e: (n.append(1), len(n) == 2 and die())

@@ -3,9 +3,12 @@
 :class:`MotionController` is the serial side of a controller that answers in lines:
 the link, the receiver's queue of decoded events read against a deadline, and the
 retries of idempotent exchanges. :class:`RotaryAxisBase` is one axis in degrees: the
-checks of its settings, the soft limits, the move timeout and the verified
-``move_to`` (command, wait until idle, settle, read back, compare). A subclass says
-how to command a move or a rotation, how to read the position and how to wait.
+checks of its settings, the soft limits and the verified ``move_to`` (command, wait
+for arrival, settle, read back, compare). The wait follows the move
+(:mod:`m2s2hil.drivers.motion_watch`): planned from its trapezoid, extended while the
+read-back progresses, a :class:`~m2s2hil.drivers.errors.MoveStalled` when it does not. A
+subclass says how to command a move or a rotation, how to read the position and the
+motion state, and how to wait.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from collections.abc import Callable
 from typing import Generic, NotRequired, Protocol, TypedDict, TypeVar
 
 from m2s2hil.drivers.clock import Clock
-from m2s2hil.drivers.errors import DeviceTimeout, MoveNotVerified, ProtocolError, SoftLimitError
+from m2s2hil.drivers.errors import DeviceTimeout, MoveNotVerified, MoveStalled, ProtocolError, SoftLimitError
+from m2s2hil.drivers.motion_watch import STALL_WINDOW_S, ProgressWatch, trapezoid_s
 from m2s2hil.drivers.serial_link import SerialLink
 
 T = TypeVar("T")
@@ -69,6 +73,8 @@ class MotionController(Generic[E]):
         self._rx = receiver
         self._events: deque[E] = deque()
         self._lock = threading.RLock()  # one transaction at a time (see drivers.locking)
+        #: No progress of a motion for this long (s) is a stall (drivers.motion_watch).
+        self.stall_window_s = STALL_WINDOW_S
 
     def close(self) -> None:
         self.link.close()
@@ -154,6 +160,11 @@ class RotaryAxisBase(ABC):
     def wait_until_idle(self, timeout: float) -> None: ...
 
     @abstractmethod
+    def _motion_state(self) -> tuple[bool, float, str]:
+        """One poll of the controller: (still moving or held, position in degrees, its state
+        as the controller names it); a typed error when it reports a fault."""
+
+    @abstractmethod
     def home(self) -> None: ...
 
     @abstractmethod
@@ -174,10 +185,47 @@ class RotaryAxisBase(ABC):
                 device=self._owner.device,
             )
 
-    def _move_timeout(self, distance_deg: float) -> float:
-        """Generous bound on a move's duration: twice the trapezoid's, plus two reply timeouts."""
+    def _watch(self, start: float, target: float) -> ProgressWatch:
         v, a = self._speed_limits()
-        return 2.0 * (abs(distance_deg) / v + v / a) + 2.0 * self._owner.timeout_s
+        return ProgressWatch(
+            self._owner.clock, planned_s=trapezoid_s(target - start, v, a),
+            slack_s=2.0 * self._owner.timeout_s, stall_window_s=self._owner.stall_window_s,
+            min_progress=self.tolerance_deg / 10, target=target,
+        )
+
+    def _await_arrival(self, start: float, target: float, command: str) -> None:
+        """Poll until the controller says the axis stands; MoveStalled when it stops progressing
+        towards ``target`` for the stall window while still said to move (it is stopped first)."""
+        watch = self._watch(start, target)
+        owner, overdue_logged = self._owner, False
+        while True:
+            moving, position, state = self._motion_state()
+            if not moving:
+                return
+            watch.update(position)
+            if watch.stalled:
+                self._stop_quietly()
+                raise MoveStalled(
+                    f"{self.name}: stalled at {position:.4f}° ({state}) on the way from {start:.4f}° to "
+                    f"{target:.4f}°: no progress for {watch.stall_window_s:g} s",
+                    axis=self.name, start=start, target=target, actual=position,
+                    device=owner.device, command=command,
+                )
+            if watch.overdue and not overdue_logged:
+                overdue_logged = True
+                logging.getLogger(type(self).__module__).warning(
+                    "%s: move to %.4f° longer than planned (%.3g s), still progressing at %.4f°: waiting",
+                    self.name, target, watch.planned_s, position,
+                )
+            owner.clock.sleep(owner.poll_interval_s)
+
+    def _stop_quietly(self) -> None:
+        """Stop a stalled axis before reporting it; the stall is the error worth raising."""
+        try:
+            self.stop()
+        except Exception as exc:  # the MoveStalled that follows says what matters
+            log = logging.getLogger(type(self).__module__)
+            log.error("%s: stopping after a stall failed: %s", self.name, exc)
 
     def move_to(self, degrees: float, *, wait: bool = True) -> float:
         self._check(degrees)
@@ -186,7 +234,7 @@ class RotaryAxisBase(ABC):
         if not wait:
             return degrees
         assert start is not None
-        self.wait_until_idle(self._move_timeout(degrees - start))
+        self._await_arrival(start, degrees, command)
         if self.settle_s:
             self._owner.clock.sleep(self.settle_s)
         actual = self.position()

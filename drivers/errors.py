@@ -88,6 +88,16 @@ class MoveNotVerified(DeviceError):
         super().__init__(message, **kw)
 
 
+class MoveStalled(MoveNotVerified):
+    """An axis that stopped progressing towards its target while its controller still said it
+    was moving (or held): which axis, where it started, where it stood, where it should be."""
+
+    def __init__(self, message: str, *, axis: str, start: float, target: float, actual: float, **kw) -> None:
+        self.axis = axis
+        self.start = start
+        super().__init__(message, target=target, actual=actual, **kw)
+
+
 class SoftLimitError(DeviceError):
     """A target outside the configured soft limits: refused before anything is sent."""
 

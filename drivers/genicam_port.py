@@ -49,6 +49,9 @@ class GenCPPort(genapi.AbstractPort):
         self.writes += 1
 
     def get_access_mode(self) -> Any:
+        # Not dead: GenApi calls the port's GetAccessMode through the SWIG director before
+        # it reads a register; without it the node map fails with "SWIG director pure
+        # virtual method called ... GetAccessMode".
         return genapi.EAccessMode.RW
 
 

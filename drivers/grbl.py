@@ -15,12 +15,25 @@ after a timeout or a garbled reply; motion commands never are.
 
 After ``ALARM:1``/``ALARM:2`` GRBL ignores everything but a soft reset, so the driver
 refuses commands with StageAlarm until :meth:`GrblController.clear_alarm`.
+
+Waits on motion follow the motion (:mod:`m2s2hil.drivers.motion_watch`): a move's from
+its trapezoid at the axis's speed and acceleration, lowered to ``$110+``/``$120+`` (units/min,
+units/s², [GRBL wiki "Grbl v1.1 Configuration"]); a stop's from the braking time. Both are
+extended while the ``?`` report's position still changes. Stopping a G-code move is a feed
+hold (``!``) until ``Hold:0`` ("Hold complete. Ready to resume"; ``Hold:1`` is "Hold
+in-progress. Reset will throw an alarm" [GRBL wiki "Grbl v1.1 Interface", status report]);
+a hold that stops progressing without completing is escalated, once, to a soft reset
+(0x18, "immediately halts and safely resets Grbl" [wiki "Grbl v1.1 Commands"]) and the
+state is read again: ALARM:3 ("Reset while in motion ... re-homing is highly recommended"
+[wiki "Grbl v1.1 Alarm codes"]) leaves the controller locked, and the rig's recovery
+clears it as the axis's homing policy says (``$X`` for an axis without switches, never ``$H``).
 """
 
 from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Unpack
 
@@ -35,6 +48,7 @@ from m2s2hil.drivers.errors import (
     StageAlarm,
 )
 from m2s2hil.drivers.locking import one_at_a_time
+from m2s2hil.drivers.motion_watch import STALL_WINDOW_S, ProgressWatch, braking_s
 from m2s2hil.protocols.grbl import (
     AXES,
     BUILD_INFO,
@@ -76,6 +90,10 @@ def _name(code: object) -> str:
     return getattr(code, "name", "unknown")
 
 
+def _held_or_idle(st: StatusReport) -> bool:
+    return st.state == "Idle" or (st.state == "Hold" and st.substate == 0)
+
+
 class GrblController(MotionController[Event]):
     def __init__(
         self,
@@ -88,11 +106,13 @@ class GrblController(MotionController[Event]):
         retries: int = 2,
         poll_interval_s: float = 0.05,
         homing_timeout_s: float = 120.0,
+        stall_window_s: float = STALL_WINDOW_S,
     ) -> None:
         super().__init__(
             url, device, baudrate, timeout_s, clock, retries, poll_interval_s, homing_timeout_s,
             GrblReceiver(),
         )
+        self.stall_window_s = stall_window_s
         self._counter = CharacterCounter()
         self._axes: dict[str, GrblAxis] = {}
         self._wco: tuple[float, ...] | None = None
@@ -210,39 +230,90 @@ class GrblController(MotionController[Event]):
             self.clock.sleep(min(self.poll_interval_s, remaining))
 
     def stop(self) -> StatusReport | None:
-        """Stop all motion without losing position.
+        """Stop all motion without losing position, waiting as long as it still decelerates.
 
         A jog is cancelled (0x85, decelerates and flushes the jog); a G-code move is
         feed-held (``!``) and once it stands (Hold:0) a soft reset flushes the rest of
         the planner (no alarm, position kept); homing can only be reset (ALARM:6).
-        A controller halted by a limit alarm is already stopped: returns None.
+        A hold or jog cancel that stops progressing unfinished is escalated to a soft
+        reset, once (:meth:`_escalate`). A controller halted by a limit alarm is already
+        stopped: returns None.
         """
         if self.critical:
             return None
         st = self.status()
-        limit = self.timeout_s * 10
         if st.state == "Jog":
             self.realtime(Realtime.JOG_CANCEL)
-            return self.wait_until_idle(limit)
+            done = self._await_rest(st, lambda s: s.state == "Idle", "jog cancel (0x85)")
+            return done if done is not None else self._escalate("jog cancel (0x85)")
         if st.state in ("Run", "Hold"):
             self.realtime(Realtime.FEED_HOLD)
-            deadline = self.clock.monotonic() + limit
-            while not (st.state == "Hold" and st.substate == 0) and st.state != "Idle":
-                if self.clock.monotonic() > deadline:
-                    raise DeviceTimeout("feed hold did not complete", device=self.device, command="!")
-                self.clock.sleep(self.poll_interval_s)
-                st = self.status()
+            held = self._await_rest(st, _held_or_idle, "!")
+            if held is None:
+                return self._escalate("feed hold (!)")
             self.soft_reset()
         elif st.state == "Home":
             self.soft_reset()
         return self.status()
 
-    def axis_position(self, letter: str) -> float:
+    def _await_rest(
+        self, st: StatusReport, done: Callable[[StatusReport], bool], what: str
+    ) -> StatusReport | None:
+        """Poll until ``done``: the braking time plus a margin, extended while the position
+        still changes; None when it stopped changing for the stall window unfinished."""
+        watch = ProgressWatch(
+            self.clock, planned_s=self._braking_s(st), slack_s=2.0 * self.timeout_s,
+            stall_window_s=self.stall_window_s, min_progress=1e-3,  # GRBL reports 3 decimals
+        )
+        while not done(st):
+            pos = st.machine_position(self._wco)
+            if pos is not None:
+                watch.update(sum(abs(p) for p in pos))
+            if watch.stalled:
+                log.warning(
+                    "%s: %s not complete after %.3g s: still %s, no motion for %g s",
+                    self.device, what, watch.elapsed, st.state_text, self.stall_window_s,
+                )
+                return None
+            self.clock.sleep(self.poll_interval_s)
+            st = self.status()
+        return st
+
+    def _escalate(self, what: str) -> StatusReport:
+        """A stop that did not complete: soft reset (0x18) once, then read the state again."""
+        log.warning("%s: %s did not complete; soft reset (0x18) to stop the motion", self.device, what)
+        self.soft_reset()
         st = self.status()
+        if st.moving:
+            raise DeviceTimeout(
+                f"still {st.state_text} after a {what} and a soft reset", device=self.device, command="0x18"
+            )
+        if st.state == "Alarm":
+            log.warning(
+                "%s: stopped by the reset, now in Alarm (ALARM:%s: position not guaranteed); the alarm is "
+                "cleared as the axes' homing policy says ($X without switches, $H with)",
+                self.device, int(self.last_alarm) if self.last_alarm is not None else "?",
+            )
+        return st
+
+    def _braking_s(self, st: StatusReport) -> float:
+        """Deceleration time from the reported feed (or the top rate) at the lowest ``$12x``."""
+        accels = [self.settings[120 + i] for i in range(len(AXES)) if self.settings.get(120 + i, 0) > 0]
+        if not accels:
+            return 0.0
+        rates = [self.settings.get(110 + i, 0.0) for i in range(len(AXES))]
+        feed = st.feed if st.feed else max(rates)
+        return braking_s(feed / 60.0, min(accels))
+
+    def position_in(self, st: StatusReport, letter: str) -> float:
+        """The machine position of axis ``letter`` in a status report."""
         pos = st.machine_position(self._wco)
         if pos is None:
             raise ProtocolError("status report without a usable position", device=self.device, command="?")
         return pos[AXES.index(letter)]
+
+    def axis_position(self, letter: str) -> float:
+        return self.position_in(self.status(), letter)
 
     # -- exchanges -------------------------------------------------------------------
     def _check_critical(self, command: str) -> None:
@@ -479,6 +550,17 @@ class GrblAxis(RotaryAxisBase):
 
     def is_moving(self) -> bool:
         return self.ctl.status().moving
+
+    def _motion_state(self) -> tuple[bool, float, str]:
+        """One ``?``: anything but Idle is still on its way (Hold:0 too, and it makes no progress)."""
+        st = self.ctl.status()
+        if st.state == "Alarm":
+            raise StageAlarm(
+                f"{self.name}: controller in Alarm state during a move", code=self.ctl.last_alarm,
+                device=self.ctl.device, command="?",
+            )
+        degrees = (self.ctl.position_in(st, self.letter) - self.origin_units) / self.units_per_degree
+        return st.state != "Idle", degrees, st.state_text
 
     def wait_until_idle(self, timeout: float) -> None:
         self.ctl.wait_until_idle(timeout)

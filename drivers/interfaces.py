@@ -19,7 +19,9 @@ class RotaryAxis(Protocol):
 
     def move_to(self, degrees: float, *, wait: bool = True) -> float:
         """Move to ``degrees``; with ``wait`` block until idle and return the verified
-        read-back position (MoveNotVerified if it is off by more than the tolerance)."""
+        read-back position (MoveNotVerified if it is off by more than the tolerance). The
+        wait follows the move (planned duration, extended while it progresses); an axis
+        that stops progressing while still said to move is stopped: MoveStalled."""
         ...
 
     def position(self) -> float: ...

@@ -11,6 +11,13 @@ e.g. FS stall, FQ encoder error) in any reply → StageAlarm(code = WarningFlag)
 → ProtocolError; the port vanished → DeviceGone (then :meth:`ZaberDevice.reconnect`).
 Queries (``get``, the status poll, ``warnings``) are retried ``retries`` times after a
 timeout or a garbled reply; motion commands never are.
+
+Every reply carries the axis's status, ``BUSY`` while it moves and ``IDLE`` otherwise
+[Zaber, "Zaber's ASCII Protocol", zaber.com/articles/ascii-protocol; ASCII Protocol
+Manual, "Replies"], so a wait on motion polls ``get pos``: one exchange gives both the
+status and the position. The wait follows the motion (:mod:`m2s2hil.drivers.motion_watch`):
+the trapezoid at the axis's ``maxspeed``/``accel`` (written from the rig file by
+:meth:`ZaberAxis.configure`), extended while the position still changes.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from m2s2hil.drivers.errors import (
     StageAlarm,
 )
 from m2s2hil.drivers.locking import one_at_a_time
+from m2s2hil.drivers.motion_watch import STALL_WINDOW_S, ProgressWatch, braking_s
 from m2s2hil.protocols.zaber import (
     ACCEL_DATA_PER_USTEP_S2,
     MAX_MESSAGE_ID,
@@ -69,6 +77,7 @@ class ZaberDevice(MotionController[Event]):
         retries: int = 2,
         poll_interval_s: float = 0.05,
         homing_timeout_s: float = 120.0,
+        stall_window_s: float = STALL_WINDOW_S,
     ) -> None:
         if not 1 <= address <= 99:
             raise ValueError(f"Zaber device address must be 1..99, got {address}")
@@ -76,6 +85,7 @@ class ZaberDevice(MotionController[Event]):
             url, device, baudrate, timeout_s, clock, retries, poll_interval_s, homing_timeout_s,
             ZaberReceiver(),
         )
+        self.stall_window_s = stall_window_s
         self.address = address
         self._next_id = 0
         self._axes: dict[int, ZaberAxis] = {}
@@ -270,20 +280,42 @@ class ZaberAxis(RotaryAxisBase):
         self.dev.request(self.number, f"move vel {direction * self._speed_data(speed_dps)}")
 
     def position(self) -> float:
-        data = self.dev.get("pos", self.number)
+        return self._degrees(self.dev.get("pos", self.number))
+
+    def _degrees(self, data: str) -> float:
         try:
             return int(data) / self.units_per_degree
         except ValueError:
             raise ProtocolError(f"position {data!r} is not a number", device=self.dev.device) from None
 
+    def _poll_pos(self, *, check_faults: bool = True) -> tuple[bool, float]:
+        """``get pos``: (BUSY, position in degrees) from one reply."""
+        reply = self.dev.request(self.number, "get pos", idempotent=True, check_faults=check_faults)
+        return reply.busy, self._degrees(reply.data)
+
+    def _motion_state(self) -> tuple[bool, float, str]:
+        busy, degrees = self._poll_pos()  # a fault flag (FS stall, FQ encoder) raises StageAlarm
+        return busy, degrees, "BUSY" if busy else "IDLE"
+
     def stop(self) -> None:
-        """Decelerate to rest (always allowed, even with a fault flag set)."""
+        """Decelerate to rest (always allowed, even with a fault flag set), waiting the
+        braking time plus a margin, and longer while the position still changes."""
         self.dev.request(self.number, "stop", check_faults=False)
-        deadline = self.dev.clock.monotonic() + self.dev.timeout_s * 10
-        while self.dev.request(self.number, "", idempotent=True, check_faults=False).busy:
-            if self.dev.clock.monotonic() > deadline:
-                raise DeviceTimeout("did not stop", device=self.dev.device, command="stop")
+        watch = ProgressWatch(
+            self.dev.clock, planned_s=braking_s(self.max_speed_dps, self.accel_dps2),
+            slack_s=2.0 * self.dev.timeout_s, stall_window_s=self.dev.stall_window_s,
+            min_progress=1.0 / self.units_per_degree,  # one microstep
+        )
+        busy, degrees = self._poll_pos(check_faults=False)
+        while busy:
+            watch.update(degrees)
+            if watch.stalled:
+                raise DeviceTimeout(
+                    f"{self.name}: did not stop: still BUSY at {degrees:.4f}° with no motion for "
+                    f"{watch.stall_window_s:g} s", device=self.dev.device, command="stop",
+                )
             self.dev.clock.sleep(self.dev.poll_interval_s)
+            busy, degrees = self._poll_pos(check_faults=False)
 
     def is_moving(self) -> bool:
         return self.dev.request(self.number, "", idempotent=True).busy

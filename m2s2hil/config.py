@@ -12,9 +12,12 @@ import hashlib
 import json
 import tomllib
 import weakref
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
+from types import MappingProxyType
 from typing import Annotated, Literal
 
 from pydantic import (
@@ -26,12 +29,56 @@ from pydantic import (
     model_validator,
 )
 
-from m2s2hil.errors import ConfigError, validation_problem
+from m2s2hil.errors import ConfigError, UsageError, validation_problem
 from m2s2hil.sim_config import SimulationConfig, check_devices
 
-MOTION_PROTOCOLS = ("grbl", "zaber")
-RELAY_PROTOCOLS = ("modbus-rtu", "ascii-relay")
+#: The device kinds a rig file's ``[devices]`` may name. Everything else about a kind (its
+#: driver, simulator, what ``rig probe`` reads, how it is recognised on a wrong port) is its
+#: entry in m2s2hil/rig/devices/; tests/test_rig_devices.py checks the two agree.
 DeviceProtocol = Literal["grbl", "zaber", "modbus-rtu", "ascii-relay"]
+DeviceRole = Literal["motion", "relay"]
+
+
+@dataclass(frozen=True)
+class ProtocolRules:
+    """What the rig file itself checks about a device kind: its role and, for motion, which
+    axis names the controller has (``axis_problem(name)``: why not, or None)."""
+
+    role: DeviceRole
+    axis_problem: Callable[[str], str | None] | None = None
+
+
+def _grbl_axis(axis: str) -> str | None:
+    return None if axis.upper() in ("X", "Y", "Z") else f"GRBL axis must be X, Y or Z, not {axis!r}"
+
+
+def _zaber_axis(axis: str) -> str | None:
+    return None if axis.isdigit() else f"Zaber axis must be a number, not {axis!r}"
+
+
+PROTOCOLS: Mapping[str, ProtocolRules] = MappingProxyType({
+    "grbl": ProtocolRules("motion", _grbl_axis),
+    "zaber": ProtocolRules("motion", _zaber_axis),
+    "modbus-rtu": ProtocolRules("relay"),
+    "ascii-relay": ProtocolRules("relay"),
+})  # the keys of DeviceProtocol, in its order (tests/test_rig_devices.py)
+MOTION_PROTOCOLS = tuple(p for p, rules in PROTOCOLS.items() if rules.role == "motion")
+RELAY_PROTOCOLS = tuple(p for p, rules in PROTOCOLS.items() if rules.role == "relay")
+
+#: The demosaicing methods a rig file (``[processing] method``), ``capture --method``, a sweep
+#: and ``evaluate --reprocess`` may name: known here, below processing, so checking a name
+#: imports no numba. processing.demosaic has one class per name (tests/test_config.py checks).
+DEMOSAIC_METHODS: tuple[str, ...] = ("superpixel", "nearest", "wb", "ppid")
+
+
+def check_demosaic_method(name: str, error: Callable[[str], Exception] = UsageError) -> str:
+    """``name`` if it is a demosaicing method, else ``error(message)`` is raised (a
+    ``UsageError`` unless the caller needs its own type: pydantic's ``ValueError``,
+    processing's ``UnknownMethodError``)."""
+    if name not in DEMOSAIC_METHODS:
+        raise error(f"unknown demosaicing method {name!r}; known: {', '.join(DEMOSAIC_METHODS)}")
+    return name
+
 
 # Default MSFA layout (band index 0..9 at each of the 16 positions of the 4x4 cell).
 # The TOUCAN's real layout is not public; this documented default spreads the six
@@ -155,11 +202,7 @@ class ProcessingConfig(_Model):
     @field_validator("method")
     @classmethod
     def _known_method(cls, v: str) -> str:
-        from m2s2hil.processing.demosaic import METHODS
-
-        if v not in METHODS:
-            raise ValueError(f"unknown demosaicing method {v!r}; known: {', '.join(METHODS)}")
-        return v
+        return check_demosaic_method(v, ValueError)
 
     dark_reduce: Literal["mean", "median"] = "mean"
     dark_frames: Annotated[int, Field(ge=1, le=256)] = 8
@@ -215,14 +258,14 @@ class RigConfig(_Model):
             dev = self.devices.get(ax.device)
             if dev is None:
                 raise ConfigError("", f"axes.{role}.device", f"no device named {ax.device!r}")
-            if dev.protocol not in MOTION_PROTOCOLS:
+            rules = PROTOCOLS[dev.protocol]
+            if rules.role != "motion":
                 raise ConfigError(
                     "", f"axes.{role}.device", f"device {ax.device!r} speaks {dev.protocol}, not motion"
                 )
-            if dev.protocol == "grbl" and ax.axis.upper() not in ("X", "Y", "Z"):
-                raise ConfigError("", f"axes.{role}.axis", f"GRBL axis must be X, Y or Z, not {ax.axis!r}")
-            if dev.protocol == "zaber" and not ax.axis.isdigit():
-                raise ConfigError("", f"axes.{role}.axis", f"Zaber axis must be a number, not {ax.axis!r}")
+            problem = rules.axis_problem(ax.axis) if rules.axis_problem is not None else None
+            if problem is not None:
+                raise ConfigError("", f"axes.{role}.axis", problem)
         relays = [n for n, d in self.devices.items() if d.protocol in RELAY_PROTOCOLS]
         if self.lamps and len(relays) != 1:
             raise ConfigError("", "devices", f"lamps need exactly one relay board, found {len(relays)}")

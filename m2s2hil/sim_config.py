@@ -29,7 +29,8 @@ built, so validating a rig file stays cheap.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import urllib.parse
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import (
@@ -52,6 +53,22 @@ if TYPE_CHECKING:
     from m2s2hil.simulators.world import World
 
 DEFAULT_CAMERA_SIM_NAME = "toucan"
+SIM_SCHEME = "sim://"
+
+
+def is_simulated(port: str) -> bool:
+    """Whether a rig file's port is an in-process simulator (``sim://NAME``): the one test
+    of it, so that a rig, a device and the camera are called simulated alike."""
+    return port.startswith(SIM_SCHEME)
+
+
+def sim_name(port: str) -> str | None:
+    """The NAME of a ``sim://NAME`` port, read as the ``sim://`` serial handler reads it
+    (simulators/protocol_sim.py), else None."""
+    if not is_simulated(port):
+        return None
+    parts = urllib.parse.urlsplit(port)
+    return parts.netloc or parts.path.lstrip("/")
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
@@ -117,6 +134,7 @@ class FaultSpec(_Model):
     channel: Annotated[int, Field(ge=0, le=255)] | None = None
     status: Annotated[int, Field(ge=0, le=0xFFFF)] | None = None
     bytes: Annotated[int, Field(ge=1)] | None = None
+    factor: Annotated[float, Field(ge=1)] | None = None  # slow_motion: times slower than configured
 
     @field_validator("kind")
     @classmethod
@@ -180,10 +198,7 @@ _FAULTS = TypeAdapter(dict[str, list[FaultSpec]])
 
 def camera_sim_name(rig: RigConfig) -> str:
     """The name the camera's simulator (and its faults) goes by: its ``sim://`` name."""
-    port = rig.camera.port
-    if port.startswith("sim://"):
-        return port.removeprefix("sim://").strip("/") or DEFAULT_CAMERA_SIM_NAME
-    return DEFAULT_CAMERA_SIM_NAME
+    return sim_name(rig.camera.port) or DEFAULT_CAMERA_SIM_NAME
 
 
 def check_devices(rig: RigConfig) -> None:
@@ -206,7 +221,7 @@ def check_faults(
 ) -> None:
     """Refuse a fault for a device the rig does not have, a kind its simulator does not
     handle, or a parameter the kind does not take (ConfigError naming the key)."""
-    device_kind = {name: dev.protocol for name, dev in rig.devices.items()}
+    device_kind: dict[str, str] = {name: dev.protocol for name, dev in rig.devices.items()}
     device_kind[camera_sim_name(rig)] = "u3v"
     for name, specs in faults.items():
         kind_of_device = device_kind.get(name)
@@ -230,7 +245,7 @@ def check_faults(
 
 
 def fault_plans(
-    rig: RigConfig, extra: Mapping[str, list[Mapping[str, Any]]] | None = None, *, seed: int = 0
+    rig: RigConfig, extra: Mapping[str, Sequence[Mapping[str, Any]]] | None = None, *, seed: int = 0
 ) -> dict[str, FaultPlan]:
     """A seeded fault plan per simulated device: the rig file's faults plus ``extra`` (a
     test's or a benchmark's, checked the same way)."""

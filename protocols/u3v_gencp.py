@@ -112,10 +112,6 @@ class Command:
         return encode_command(self.command_id, self.payload, self.request_id, self.flags, self.prefix)
 
     @property
-    def wants_ack(self) -> bool:
-        return bool(self.flags & Flags.REQUEST_ACK)
-
-    @property
     def is_resend(self) -> bool:
         return bool(self.flags & Flags.RESEND)
 

@@ -119,10 +119,6 @@ class SimDevice:
         with self.lock:
             heapq.heappush(self._out, (self.clock.monotonic() + delay, next(self._seq), data))
 
-    def clear_output(self) -> None:
-        with self.lock:
-            self._out.clear()
-
     def on_bytes(self, data: bytes) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 

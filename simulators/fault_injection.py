@@ -19,7 +19,8 @@ faults against it. Generic serial kinds, handled by
 :class:`~m2s2hil.simulators.device.SimDevice` itself: ``drop_reply``, ``garble``
 (``bytes``), ``late_reply`` (``delay_s``), ``vanish`` (``duration_s``). Device kinds:
 ``stall`` (``fraction``) and ``alarm`` (``at``, plus GRBL's ``code`` or Zaber's ``flag``)
-for motion, ``relay_stuck`` (``channel``) for relays, and the camera's ``frame_timeout``,
+for motion, ``slow_motion`` (``factor``), ``hang`` (``fraction``) and GRBL's ``hold_stuck``
+for a slow or stuck rig, ``relay_stuck`` (``channel``) for relays, and the camera's ``frame_timeout``,
 ``incomplete`` (``fraction``), ``trailer_error`` (``status``), ``stall``, ``unplug``
 (``duration_s``).
 """
@@ -38,11 +39,16 @@ _SERIAL: dict[str, tuple[str, ...]] = {
     "vanish": ("duration_s",),  # default 1 s
 }
 
+#: A slow or stuck rig (simulators.grbl / simulators.zaber): ``slow_motion`` runs moves
+#: ``factor`` times slower than the controller's settings say (default 5); ``hang`` freezes
+#: one part-way while the controller still reports it moving (default fraction 0.5).
+_SLOW_RIG: dict[str, tuple[str, ...]] = {"slow_motion": ("factor",), "hang": ("fraction",)}
+
 #: For each kind of simulated device (the rig file's protocol names, ``u3v`` for the
 #: camera), the fault kinds its simulator handles and the parameters each kind takes.
 FAULT_KINDS_BY_DEVICE: dict[str, dict[str, tuple[str, ...]]] = {
-    "grbl": {**_SERIAL, "stall": ("fraction",), "alarm": ("at", "code")},
-    "zaber": {**_SERIAL, "stall": ("fraction",), "alarm": ("at", "flag")},
+    "grbl": {**_SERIAL, "stall": ("fraction",), "alarm": ("at", "code"), **_SLOW_RIG, "hold_stuck": ()},
+    "zaber": {**_SERIAL, "stall": ("fraction",), "alarm": ("at", "flag"), **_SLOW_RIG},
     "modbus-rtu": {**_SERIAL, "relay_stuck": ("channel",)},
     "ascii-relay": {**_SERIAL, "relay_stuck": ("channel",)},
     "u3v": {

@@ -66,7 +66,14 @@ axis was during it (the recent path is kept in a :class:`PathLog`).
 
 Faults (``self.faults``): ``stall`` (``fraction``, default 0.5) stops the next move
 part-way and reports Idle there; ``alarm`` (``code`` default 1, ``at`` default 0.5 of
-the move) raises that alarm mid-move (during ``$H``: ALARM:9, then a reset).
+the move) raises that alarm mid-move (during ``$H``: ALARM:9, then a reset). For a slow or
+stuck rig: ``slow_motion`` (``factor``, default 5) runs the next move (each move with
+``count = -1``) that many times slower than ``$11x``/``$12x`` say (speeds / factor,
+accelerations / factor²: a heavier load, a weaker drive), its hold braking too; ``hang``
+(``fraction``, default 0.5) freezes the next move part-way while the controller still
+reports Run (the axis makes no progress); ``hold_stuck`` makes the next feed hold never
+complete: the axis brakes to rest but the report stays ``Hold:1``, so only a soft reset
+ends it (ALARM:3, as a reset during ``Hold:1`` does [iface]).
 """
 
 from __future__ import annotations
@@ -205,6 +212,9 @@ class GrblSimulator(InOrderReplies, SimDevice):
         self._hold_done = False
         self._soft_limit_stop = False  # braking before ALARM:2; the line waits for its ok
         self._owed_ok = False  # a line still executing when a critical alarm struck
+        self._slow = 1.0  # the current motion's slow_motion factor
+        self._hung = False  # the current segment froze part-way but still reports Run
+        self._hold_stuck = False  # the current hold never reports Hold:0
         self._wco_counter = 0
         self._ov_counter = 0
 
@@ -253,7 +263,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
 
     def next_event(self) -> float | None:
         times = []
-        if self._segment is not None:
+        if self._segment is not None and not self._hung:
             times.append(self._segment.t_end)
         if self._pending_alarm is not None:
             times.append(self._pending_alarm[0])
@@ -276,6 +286,12 @@ class GrblSimulator(InOrderReplies, SimDevice):
     # -- time --------------------------------------------------------------------------
     def _position(self, now: float) -> tuple[float, ...]:
         return self._segment.position(now) if self._segment is not None else self._rest
+
+    def _speed(self, now: float) -> float:
+        seg = self._segment
+        if seg is None or (self._hung and seg.covered(now) >= (seg.stop_after or 0.0)):
+            return 0.0  # a hung move stands at its freezing point
+        return seg.speed(now)
 
     def _note(self, t: float) -> None:
         """Log the motion from ``t`` on (a no-op unless segment, rest or offset changed)."""
@@ -300,7 +316,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
                 self._alarm(alarm[1])
                 self._note(alarm[0])
                 continue
-            if seg is None or seg.t_end > now:
+            if seg is None or seg.t_end > now or self._hung:
                 break
             t = seg.t_end
             self._rest = seg.position(t)
@@ -308,7 +324,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
             if alarm is not None and alarm[0] > t:
                 self._pending_alarm = None  # the move ended (stalled) before the alarm point
             if seg.kind == "hold":
-                self._hold_done = True
+                self._hold_done = not self._hold_stuck
             elif seg.kind == "softlimit":
                 # The controlled stop is over: now the critical alarm [src:limits.c].
                 self._queue.clear()
@@ -348,12 +364,19 @@ class GrblSimulator(InOrderReplies, SimDevice):
             if rate == float("inf") or rate <= 0:
                 self._rest = block.target
                 continue  # zero-length block
+            slow = self.faults.take("slow_motion")
+            self._slow = float(slow.get("factor", 5.0)) if slow is not None else 1.0
             seg = Segment.between(
-                self._rest, block.target, t, v_max=rate / 60.0, accel=accel, kind=block.kind
+                self._rest, block.target, t, v_max=rate / 60.0 / self._slow, accel=accel / self._slow**2,
+                kind=block.kind,
             )
             stall = self.faults.take("stall")
             if stall is not None:
                 seg.stop_after = float(stall.get("fraction", 0.5)) * seg.length
+            hang = self.faults.take("hang")
+            if hang is not None:
+                seg.stop_after = float(hang.get("fraction", 0.5)) * seg.length
+                self._hung = True
             fault = self.faults.take("alarm")
             if fault is not None:
                 when = t + float(fault.get("at", 0.5)) * seg.profile.duration
@@ -385,8 +408,10 @@ class GrblSimulator(InOrderReplies, SimDevice):
         """Replace the current segment by its deceleration to rest."""
         seg = self._segment
         assert seg is not None
-        pos, v = seg.position(now), seg.speed(now)
+        pos, v = seg.position(now), self._speed(now)
+        self._hung = False
         _, accel = self._limits(seg.start, seg.end, None)
+        accel /= self._slow**2
         length = v * v / (2 * accel) if v > 0 else 0.0
         end = tuple(p + u * length for p, u in zip(pos, seg.unit, strict=True))
         self._segment = Segment(pos, end, now, Trapezoid(length, max(v, 1e-9), accel, v0=v), kind=kind)
@@ -400,6 +425,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
             self._queue.appendleft(self._current)  # resume heads for the same target
             self._brake(now, "hold")
             self._state, self._hold_done = "Hold", False
+            self._hold_stuck = self.faults.take("hold_stuck") is not None
 
     def _cycle_start(self, now: float) -> None:
         if self._state == "Hold" and self._hold_done:
@@ -685,7 +711,7 @@ class GrblSimulator(InOrderReplies, SimDevice):
         pos = self._position(now)
         mask = int(self.settings[10])
         busy = self._segment is not None
-        speed = self._segment.speed(now) * 60.0 if self._segment is not None else 0.0
+        speed = self._speed(now) * 60.0
         wco = ov = None
         if self._wco_counter > 0:
             self._wco_counter -= 1

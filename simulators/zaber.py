@@ -33,7 +33,11 @@ a camera that renders a frame after its exposure (the recent path: a :class:`Pat
 
 Faults (``self.faults``): ``stall`` (``fraction``, default 0.5) stops the next move
 part-way and sets ``FS``; ``alarm`` (``flag`` default ``FQ``, ``at`` default 0.5)
-stops it mid-move with that fault flag.
+stops it mid-move with that fault flag. For a slow or stuck rig: ``slow_motion``
+(``factor``, default 5) runs the next move (each move with ``count = -1``) that many times
+slower than ``maxspeed``/``accel`` say (speed / factor, acceleration / factor², its stop
+too); ``hang`` (``fraction``, default 0.5) freezes the next move part-way while the axis
+still replies ``BUSY`` (no progress, no flag) until ``stop``.
 """
 
 from __future__ import annotations
@@ -89,6 +93,8 @@ class _Axis:
     homed: bool = False
     flags: set[str] = field(default_factory=set)
     alarm: tuple[float, str] | None = None
+    slow: float = 1.0  # the current motion's slow_motion factor
+    hung: bool = False  # the current move froze part-way but still replies BUSY
     path: PathLog = field(default_factory=PathLog)  # physical positions over the recent changes
 
     def position(self, now: float) -> float:
@@ -107,7 +113,10 @@ class _Axis:
             self.path.note(seg.t0, (seg, base, d), lambda t_, s=seg, b=base, d=d: b + d * s.covered(t_))
 
     def speed(self, now: float) -> float:
-        return self.segment.speed(now) if self.segment is not None else 0.0
+        seg = self.segment
+        if seg is None or (self.hung and seg.covered(now) >= (seg.stop_after or 0.0)):
+            return 0.0  # a hung move stands at its freezing point
+        return seg.speed(now)
 
     def all_flags(self) -> set[str]:
         return self.flags | (set() if self.homed else {"WR"})
@@ -212,7 +221,7 @@ class ZaberSimulator(InOrderReplies, SimDevice):
         self._advance(now)
 
     def next_event(self) -> float | None:
-        times = [a.segment.t_end for a in self._axes if a.segment is not None]
+        times = [a.segment.t_end for a in self._axes if a.segment is not None and not a.hung]
         times += [a.alarm[0] for a in self._axes if a.alarm is not None]
         return min(times) if times else None
 
@@ -231,7 +240,7 @@ class ZaberSimulator(InOrderReplies, SimDevice):
                 ax.flags.add(ax.alarm[1])
                 ax.segment, ax.alarm = None, None
                 ax.note(when)
-            elif seg.t_end <= now:
+            elif seg.t_end <= now and not ax.hung:
                 ax.rest = ax.position(seg.t_end)
                 ax.segment, ax.alarm = None, None
                 if seg.stop_after is not None:
@@ -246,8 +255,11 @@ class ZaberSimulator(InOrderReplies, SimDevice):
         pos, v = ax.position(now), ax.speed(now)
         direction = 1 if target >= pos else -1
         v0 = v if direction == ax.direction else 0.0
+        slow = None if kind == "home" or target == pos else self.faults.take("slow_motion")
+        ax.slow, ax.hung = (float(slow.get("factor", 5.0)) if slow is not None else 1.0), False
         v_max = (v_data if v_data is not None else ax.settings["maxspeed"]) / VELOCITY_DATA_PER_USTEP_S
-        accel = max(ax.settings["accel"], 1) / ACCEL_DATA_PER_USTEP_S2
+        v_max /= ax.slow
+        accel = max(ax.settings["accel"], 1) / ACCEL_DATA_PER_USTEP_S2 / ax.slow**2
         profile = Trapezoid(abs(target - pos), max(v_max, 1e-9), accel, v0=v0)
         ax.rest, ax.direction, ax.alarm = pos, direction, None
         ax.segment = Segment((0.0,), (abs(target - pos),), now, profile, kind=kind)
@@ -257,6 +269,10 @@ class ZaberSimulator(InOrderReplies, SimDevice):
         stall = self.faults.take("stall")
         if stall is not None:
             ax.segment.stop_after = float(stall.get("fraction", 0.5)) * profile.length
+        hang = self.faults.take("hang")
+        if hang is not None:
+            ax.segment.stop_after = float(hang.get("fraction", 0.5)) * profile.length
+            ax.hung = True
         fault = self.faults.take("alarm")
         if fault is not None:
             when = now + float(fault.get("at", 0.5)) * profile.duration
@@ -267,11 +283,11 @@ class ZaberSimulator(InOrderReplies, SimDevice):
             return
         pos, v = ax.position(now), ax.speed(now)
         ax.flags.add("NI")
-        ax.alarm = None
+        ax.alarm, ax.hung = None, False
         if hard or v <= 0:
             ax.rest, ax.segment = pos, None
             return
-        accel = max(ax.settings["accel"], 1) / ACCEL_DATA_PER_USTEP_S2
+        accel = max(ax.settings["accel"], 1) / ACCEL_DATA_PER_USTEP_S2 / ax.slow**2
         length = v * v / (2 * accel)
         ax.rest = pos
         ax.segment = Segment((0.0,), (length,), now, Trapezoid(length, v, accel, v0=v), kind="stop")

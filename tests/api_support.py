@@ -1,21 +1,27 @@
 """Shared helpers for the API tests (tests/test_api_*.py): a small simulated rig, a daemon
-around it, sweeps, SSE parsing, waiting."""
+around it (in this process, or as a real ``serve`` process), sweeps, SSE parsing, waiting."""
 
 from __future__ import annotations
 
 import contextlib
+import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import httpx
 from fastapi.testclient import TestClient
 
 from m2s2hil.api import SessionManager, create_app
-from m2s2hil.config import RigConfig, default_rig, parse_rig
+from m2s2hil.config import RigConfig, default_rig, load_rig, parse_rig
 from m2s2hil.rig.factory import open_simulated_rig
 
 TOKEN = "s3cret-token-for-tests-0123456789"
@@ -138,3 +144,81 @@ def uvicorn_thread(app: Any) -> Iterator[str]:
     finally:
         server.should_exit = True
         t.join(timeout=10)
+
+
+def quick_rig_file(tmp: Path) -> Path:
+    """The built-in rig with a small sensor and a quicker turntable (a realtime session of ~5 s)."""
+    text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
+    for old, new in (("width = 2048", "width = 256"), ("height = 2048", "height = 256"),
+                     ("max_speed_dps = 60.0", "max_speed_dps = 180.0"),
+                     ("accel_dps2 = 120.0", "accel_dps2 = 720.0")):
+        assert old in text
+        text = text.replace(old, new)
+    p = tmp / "rig.toml"
+    p.write_text(text)
+    load_rig(p)  # still a valid rig
+    return p
+
+
+class DaemonProcess:
+    """``python -m m2s2hil.commands.serve`` on ``tmp/data`` (real clock), up once /healthz answers;
+    its log (stderr) in ``tmp/daemon-<port>.log``."""
+
+    def __init__(self, tmp: Path, rig: Path, *extra: str) -> None:
+        self.port = free_port()
+        self.log = tmp / f"daemon-{self.port}.log"
+        env = {k: v for k, v in os.environ.items() if k not in ("M2S2HIL_TOKEN", "M2S2HIL_DATA")}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "m2s2hil.commands.serve", "--rig", str(rig),
+             "--data-root", str(tmp / "data"), "--host", "127.0.0.1", "--port", str(self.port), "--realtime",
+             *extra],
+            stdout=subprocess.DEVNULL, stderr=self.log.open("w"), env=env,
+        )
+        self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=10,
+                                 headers={"X-M2S2HIL": "1"})
+        deadline = time.monotonic() + 60
+        while True:
+            assert self.proc.poll() is None, f"daemon exited early:\n{self.log.read_text()}"
+            try:
+                if self.http.get("/healthz").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, f"daemon did not come up:\n{self.log.read_text()}"
+            time.sleep(0.1)
+
+    def wait(self, sid: str, pred: Callable[[dict], bool], timeout: float = 60.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while True:
+            st = self.http.get(f"/sessions/{sid}").json()
+            if pred(st):
+                return st
+            assert time.monotonic() < deadline, f"timed out: {st}\n{self.log.read_text()}"
+            time.sleep(0.05)
+
+    def stop(self, sig: int = signal.SIGTERM) -> str:
+        """Signal it, wait for exit code 0; returns its log."""
+        self.http.close()
+        self.proc.send_signal(sig)
+        try:
+            rc = self.proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise
+        log = self.log.read_text()
+        assert rc == 0, f"exit code {rc}:\n{log}"
+        return log
+
+    def kill(self) -> None:
+        """``kill -9``: no shutdown of any kind."""
+        self.http.close()
+        self.proc.kill()
+        self.proc.wait(timeout=30)
+
+    def __enter__(self) -> DaemonProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=30)

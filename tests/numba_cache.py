@@ -5,7 +5,9 @@ processes compiling different signatures of the same kernel at once can both pic
 same free number, and one then loads the other's machine code. Each test process
 therefore claims a cache slot (``<tmp>/m2s2hil-numba-<tree>/slot-N``) with an exclusive
 lock held for its lifetime: one run after another reuses slot 0 (a warm cache), runs side
-by side get different slots. Subprocesses a test starts inherit their parent's slot.
+by side get different slots, and so do the workers of one ``pytest -n 2`` run (each claims
+its own in its ``pytest_configure``; the controller, which runs no test, claims none).
+Subprocesses a test starts inherit their parent's slot.
 
 Must run before numba is imported (numba reads ``NUMBA_CACHE_DIR`` once, at import).
 """
@@ -43,9 +45,15 @@ def claim_slot(base: Path | None = None, *, max_slots: int = 64) -> Path:
     raise RuntimeError(f"all {max_slots} numba cache slots under {base} are in use")
 
 
-def use_private_numba_cache() -> None:
-    """Claim a slot unless this process already has a cache dir (a test's subprocess, or CI's)."""
+def use_private_numba_cache(*, worker: bool = False) -> None:
+    """Claim a slot unless this process already has a cache dir (a test's subprocess, or CI's).
+
+    An xdist ``worker`` always claims one: its siblings see the same environment, so a cache
+    dir given from outside becomes the base of their slots instead of one shared dir."""
     if "numba" in sys.modules:
         warnings.warn("numba was imported before the test cache slot was claimed", stacklevel=2)
-    if "NUMBA_CACHE_DIR" not in os.environ:
+    given = os.environ.get("NUMBA_CACHE_DIR")
+    if given is None:
         claim_slot()
+    elif worker:
+        claim_slot(Path(given))

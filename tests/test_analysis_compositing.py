@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from m2s2hil.analysis.compositing import (
+from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.analysis.segmenters.compositing import (
     align_labels,
     binary_fusion,
     composite_masks,
@@ -15,7 +16,6 @@ from m2s2hil.analysis.compositing import (
     quality_order,
     top_k_masks,
 )
-from m2s2hil.analysis.errors import AnalysisInputError
 
 SHAPE = (12, 12)
 

@@ -9,7 +9,7 @@ import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.matching import match_clusters
-from m2s2hil.analysis.metrics import harmonic_mean, micro_iou, score_clusters, segmentation_scores
+from m2s2hil.analysis.metrics.scores import harmonic_mean, micro_iou, score_clusters, segmentation_scores
 
 NAN = float("nan")
 

@@ -8,9 +8,14 @@ import numpy as np
 import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.metrics import score_clusters
-from m2s2hil.analysis.simframes import simulated_frames, visible_materials
-from m2s2hil.analysis.spectral import SpectralSegmenter, features_of, foreground_mask, homogeneous_pixels
+from m2s2hil.analysis.metrics.scores import score_clusters
+from m2s2hil.analysis.segmenters.spectral import (
+    SpectralSegmenter,
+    features_of,
+    foreground_mask,
+    homogeneous_pixels,
+)
+from m2s2hil.analysis.study.simframes import simulated_frames, visible_materials
 
 OLD_DEFAULT = {"fit_pixels": "all", "foreground": "otsu", "brightness_weight": 0.0, "merge_angle_deg": 1.0}
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.mtc import band_fused_predictor, draw_shifts, mtc, translate, untranslate
+from m2s2hil.analysis.metrics.mtc import band_fused_predictor, draw_shifts, mtc, translate, untranslate
 
 # The documented draw: np.random.default_rng(42).integers(-3, 4, size=(8, 2)), rows (dx, dy).
 PAPER_SHIFTS = ((-3, 2), (1, 0), (0, 3), (-3, 1), (-2, -3), (0, 3), (2, 2), (2, 2))

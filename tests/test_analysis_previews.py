@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from m2s2hil.analysis.report_html import preview_rgb
+from m2s2hil.analysis.report.session_html import preview_rgb
 from m2s2hil.engine.frames import calibrated_white, rgb_preview
 from m2s2hil.processing.display import false_colour
 

@@ -8,7 +8,7 @@ import pytest
 
 from m2s2hil.analysis.cie1931 import CIE1931_2DEG_5NM, XYZ_TO_LINEAR_SRGB
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.rgb import (
+from m2s2hil.analysis.segmenters.rgb import (
     TOUCAN_BANDS_NM,
     RgbBaseline,
     band_colours,
@@ -17,8 +17,8 @@ from m2s2hil.analysis.rgb import (
     render_rgb,
     wavelength_to_rgb,
 )
-from m2s2hil.analysis.spectral import SpectralSegmenter
-from m2s2hil.analysis.synthetic import synthetic_scene
+from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
+from m2s2hil.analysis.study.synthetic import synthetic_scene
 
 G = 0.8
 

@@ -11,18 +11,18 @@ from scipy import ndimage
 
 from m2s2hil.analysis.errors import AnalysisInputError, SegmenterUnavailableError, UnknownSegmenterError
 from m2s2hil.analysis.matching import match_clusters
-from m2s2hil.analysis.metrics import segmentation_scores
-from m2s2hil.analysis.rgb import RgbBaseline
-from m2s2hil.analysis.sam import SamSegmenter, to_uint8
-from m2s2hil.analysis.segment import (
+from m2s2hil.analysis.metrics.scores import segmentation_scores
+from m2s2hil.analysis.segmenters.registry import (
     Segmenter,
     create_segmenter,
     register_segmenter,
     run_segmenter,
     segmenter_names,
 )
-from m2s2hil.analysis.spectral import SpectralSegmenter
-from m2s2hil.analysis.synthetic import synthetic_scene
+from m2s2hil.analysis.segmenters.rgb import RgbBaseline
+from m2s2hil.analysis.segmenters.sam import SamSegmenter, to_uint8
+from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
+from m2s2hil.analysis.study.synthetic import synthetic_scene
 
 
 def matched_scores(gt: np.ndarray, labels: np.ndarray):

@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.significance import (
+from m2s2hil.analysis.metrics.significance import (
     SENSITIVITY_RHOS,
     format_sensitivity,
     paired_t_test,

@@ -18,9 +18,9 @@ from m2s2hil.api.csrf import normalise_origin
 from m2s2hil.api.hosts import split_host
 from m2s2hil.api.logsafe import clean_text
 from m2s2hil.api.settings import load_serve_settings
+from m2s2hil.atomic import DiskFull
 from m2s2hil.errors import ConfigError
 from m2s2hil.plan import Sweep
-from m2s2hil.store.atomic import DiskFull
 
 EVIL = "https://evil.example"
 

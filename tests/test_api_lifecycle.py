@@ -3,88 +3,24 @@ with exactly the planned frames."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
-import time
 from importlib import resources
-from pathlib import Path
 
-import httpx
 import pytest
-from api_support import free_port
+from api_support import DaemonProcess, free_port, quick_rig_file
 
 from m2s2hil.api.rootlock import RootLocked, lock_data_root
-from m2s2hil.config import load_rig
 from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
 from m2s2hil.store.session import SessionStore
 
 
-def _rig_file(tmp: Path) -> Path:
-    """The built-in rig with a small sensor and a quicker turntable (a realtime session of ~5 s)."""
-    text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
-    for old, new in (("width = 2048", "width = 256"), ("height = 2048", "height = 256"),
-                     ("max_speed_dps = 60.0", "max_speed_dps = 180.0"),
-                     ("accel_dps2 = 120.0", "accel_dps2 = 720.0")):
-        assert old in text
-        text = text.replace(old, new)
-    p = tmp / "rig.toml"
-    p.write_text(text)
-    load_rig(p)  # still a valid rig
-    return p
-
-
-class _Daemon:
-    def __init__(self, tmp: Path, rig: Path, *extra: str) -> None:
-        self.port = free_port()
-        self.log = tmp / f"daemon-{self.port}.log"
-        env = {k: v for k, v in os.environ.items() if k not in ("M2S2HIL_TOKEN", "M2S2HIL_DATA")}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "m2s2hil.commands.serve", "--rig", str(rig),
-             "--data-root", str(tmp / "data"), "--host", "127.0.0.1", "--port", str(self.port), "--realtime",
-             *extra],
-            stdout=subprocess.DEVNULL, stderr=self.log.open("w"), env=env,
-        )
-        self.http = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=10)
-        deadline = time.monotonic() + 60
-        while True:
-            assert self.proc.poll() is None, f"daemon exited early:\n{self.log.read_text()}"
-            try:
-                if self.http.get("/healthz").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, f"daemon did not come up:\n{self.log.read_text()}"
-            time.sleep(0.1)
-
-    def wait(self, sid: str, pred, timeout: float = 60.0) -> dict:
-        deadline = time.monotonic() + timeout
-        while True:
-            st = self.http.get(f"/sessions/{sid}").json()
-            if pred(st):
-                return st
-            assert time.monotonic() < deadline, f"timed out: {st}\n{self.log.read_text()}"
-            time.sleep(0.05)
-
-    def stop(self, sig: int = signal.SIGTERM) -> str:
-        self.http.close()
-        self.proc.send_signal(sig)
-        try:
-            rc = self.proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            raise
-        log = self.log.read_text()
-        assert rc == 0, f"exit code {rc}:\n{log}"
-        return log
-
-
 def test_sigterm_parks_safely_and_a_restart_resumes_to_exactly_the_plan(tmp_path) -> None:
-    rig = _rig_file(tmp_path)
+    rig = quick_rig_file(tmp_path)
     sweep = {"satellite": "iss", "build": "B2", "lighting": ["weak"], "tilts": ["E1"], "azimuth_step_deg": 60,
              "dark": {"frames": 1}}
-    d = _Daemon(tmp_path, rig)
+    d = DaemonProcess(tmp_path, rig)
     try:
         r = d.http.post("/sessions", json=sweep)
         assert r.status_code == 202
@@ -112,7 +48,7 @@ def test_sigterm_parks_safely_and_a_restart_resumes_to_exactly_the_plan(tmp_path
         store.close()
     assert 2 <= frames_then < len(planned) == 6
 
-    d = _Daemon(tmp_path, rig, "--resume")
+    d = DaemonProcess(tmp_path, rig, "--resume")
     try:
         st = d.wait(sid, lambda s: s["state"] in ("completed", "failed", "aborted"))
         assert st["state"] == "completed" and st["done"] == st["total"] == 7

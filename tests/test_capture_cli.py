@@ -1,4 +1,7 @@
-"""The operator CLI as a user runs it: `capture ...` in a subprocess."""
+"""The operator CLI as a user runs it: `capture ...` through its real entry point, in-process
+(``cli_support.run_cli``: exit code and output as a user sees them), and one whole capture in a
+subprocess, where a fresh interpreter is the point (the ``sim://`` ports registered by the
+command itself, not by the test process)."""
 
 from __future__ import annotations
 
@@ -9,10 +12,13 @@ from importlib import resources
 from pathlib import Path
 
 import pytest
+from cli_support import CliResult, run_cli
 
+from m2s2hil.cli import capture_main
 from m2s2hil.config import load_rig
 from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
-from m2s2hil.store.session import SessionStore, list_sessions
+from m2s2hil.store.catalogue import list_sessions
+from m2s2hil.store.session import SessionStore
 
 
 def small_rig(tmp_path: Path) -> Path:
@@ -25,7 +31,13 @@ def small_rig(tmp_path: Path) -> Path:
     return p
 
 
-def capture(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+def capture(*args: str) -> CliResult:
+    """``capture ARGS...`` in-process."""
+    return run_cli(*args, entry=capture_main, prog="capture")
+
+
+def capture_process(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    """``capture ARGS...`` in a new interpreter."""
     code = "import sys; from m2s2hil.cli import capture_main; sys.argv[0] = 'capture'; capture_main()"
     cmd = [sys.executable, "-c", code, *args]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -41,12 +53,12 @@ def capture(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
         (["--sat", "hubble", "--build", "B2"], "--light are required"),
         (["--sat", "hubble", "--build", "B2", "--light", "weak", "--mode", "spin"], "--mode must be"),
         (["--sat", "hubble", "--build", "B2", "--light", "weak", "--method", "magic"],
-         "unknown processing method"),
+         "unknown demosaicing method 'magic'"),
     ],
 )
 def test_bad_input_exit_2(args, needle):
     res = capture(*args, "--dry-run")
-    assert res.returncode == 2, res.stderr
+    assert res.exit_code == 2, res.output
     assert needle in res.stderr
 
 
@@ -54,13 +66,13 @@ def test_malformed_rig_file_exit_2(tmp_path):
     bad = tmp_path / "rig.toml"
     bad.write_text("[axes.turntable]\ndevice = 'stage'\n")
     res = capture("--sat", "hubble", "--build", "B2", "--light", "weak", "--rig", str(bad), "--dry-run")
-    assert res.returncode == 2
+    assert res.exit_code == 2, res.output
     assert str(bad) in res.stderr
 
 
 def test_dry_run_prints_plan_and_estimate():
     res = capture("--sat", "hubble", "--build", "B2", "--light", "all", "--dry-run")
-    assert res.returncode == 0, res.stderr
+    assert res.exit_code == 0, res.output
     assert "324" in res.stdout  # 36 azimuths x 3 tilts x 3 lights
     assert "lower bound" in res.stdout
     assert "built-in simulated rig" in res.stderr
@@ -69,7 +81,7 @@ def test_dry_run_prints_plan_and_estimate():
 def test_capture_runs_a_complete_checksummed_session(tmp_path):
     rig = small_rig(tmp_path)
     out = tmp_path / "data"
-    res = capture(
+    res = capture_process(
         "--sat", "voyager", "--build", "B2", "--light", "weak,directional", "--tilt", "E1",
         "--azimuth-step", "90", "--rig", str(rig), "--out", str(out),
     )
@@ -127,8 +139,8 @@ def test_a_rig_that_cannot_be_opened_is_one_line_not_a_traceback(tmp_path):
     rig.write_text(text.replace('port = "sim://stage"', f'port = "{tmp_path}/no-such-tty"'))
     assert "no-such-tty" in rig.read_text()
     res = capture("--sat", "voyager", "--build", "B2", "--light", "weak", "--rig", str(rig),
-                  "--out", str(tmp_path / "data"), timeout=60)
-    assert res.returncode == EXIT_UNREACHABLE, res.stderr[-2000:]
+                  "--out", str(tmp_path / "data"))
+    assert res.exit_code == EXIT_UNREACHABLE, res.output[-2000:]
     (line,) = res.stderr.strip().splitlines()[-1:]
     assert line.startswith("error: cannot open stage") and "no-such-tty" in line and "missing port" in line
     assert "Traceback" not in res.stderr

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import tifffile
+from shared_sessions import Written
 from test_storage_format import capture_like_the_engine, rig_with, scene_raw, sweep
 from typer.testing import CliRunner
 
@@ -16,15 +17,23 @@ from m2s2hil.store.compact import CompactError, compact_session
 from m2s2hil.store.session import SessionStore
 
 
-def legacy_session(root):
-    st = SessionStore.create(root, sweep(), rig_with("legacy"), session_id="old")
-    cubes = capture_like_the_engine(st)
-    st.complete()
-    st.close()
-    return cubes
+@pytest.fixture
+def legacy_session(shared_sessions):
+    """``legacy_session(root)``: a completed legacy-format session "old" under ``root`` (a copy
+    of one written once per test process: every test here changes it); its cubes, by event id."""
+
+    def make(root) -> Written:
+        st = SessionStore.create(root, sweep(), rig_with("legacy"), session_id="old")
+        cubes = capture_like_the_engine(st)
+        st.complete()
+        st.close()
+        return Written(root, "old", cubes)
+
+    original = shared_sessions.get("legacy", make)
+    return lambda root: original.copy_to(root).arrays
 
 
-def test_compact_converts_a_legacy_session_and_keeps_every_value(tmp_path):
+def test_compact_converts_a_legacy_session_and_keeps_every_value(tmp_path, legacy_session):
     cubes = legacy_session(tmp_path)
     old_files = {p.name for p in (tmp_path / "old").rglob("*.tiff")}
     res = CliRunner().invoke(app, ["sessions", "compact", "old", "--root", str(tmp_path)])
@@ -53,7 +62,8 @@ def test_compact_converts_a_legacy_session_and_keeps_every_value(tmp_path):
     assert again.exit_code == 0 and "already compact" in again.output
 
 
-def test_a_crash_before_the_switch_leaves_the_old_session_and_a_rerun_finishes(tmp_path, monkeypatch):
+def test_a_crash_before_the_switch_leaves_the_old_session_and_a_rerun_finishes(tmp_path, monkeypatch,
+                                                                              legacy_session):
     cubes = legacy_session(tmp_path)
 
     def crash(*a, **kw):
@@ -73,7 +83,7 @@ def test_a_crash_before_the_switch_leaves_the_old_session_and_a_rerun_finishes(t
         assert st.verify() == []
 
 
-def test_a_crash_before_the_commit_changes_nothing(tmp_path, monkeypatch):
+def test_a_crash_before_the_commit_changes_nothing(tmp_path, monkeypatch, legacy_session):
     legacy_session(tmp_path)
     with SessionStore.open(tmp_path, "old") as st:
         before = [(fr.event_id, fr.files) for fr in st.frames()]
@@ -95,7 +105,7 @@ def test_a_crash_before_the_commit_changes_nothing(tmp_path, monkeypatch):
     assert compact_session(tmp_path, "old").frames == 4
 
 
-def test_a_damaged_session_is_refused_before_anything_is_written(tmp_path):
+def test_a_damaged_session_is_refused_before_anything_is_written(tmp_path, legacy_session):
     legacy_session(tmp_path)
     with SessionStore.open(tmp_path, "old") as st:
         victim = st.path / st.frames()[1].files["raw"].path

@@ -3,8 +3,9 @@ from importlib import resources
 
 import pytest
 
-from m2s2hil.config import load_rig, parse_rig
-from m2s2hil.errors import ConfigError
+from m2s2hil.config import DEMOSAIC_METHODS, check_demosaic_method, load_rig, parse_rig
+from m2s2hil.errors import ConfigError, UsageError
+from m2s2hil.sim_config import is_simulated, sim_name
 
 
 def _default() -> dict:
@@ -13,8 +14,8 @@ def _default() -> dict:
 
 def test_default_rig_is_fully_simulated():
     rig = load_rig()
-    assert all(d.port.startswith("sim://") for d in rig.devices.values())
-    assert rig.camera.port.startswith("sim://")
+    assert all(is_simulated(d.port) for d in rig.devices.values())
+    assert is_simulated(rig.camera.port)
     assert rig.lamp_channels("weak") == (0, 1, 2)
     assert len(rig.lamp_channels("strong")) == 5
     assert len(rig.digest) == 64
@@ -168,3 +169,31 @@ def test_faults_passed_by_a_caller_are_checked_like_the_file():
     assert info.value.source == "faults" and info.value.key == "faults.stage.0.kind"
     with pytest.raises(ConfigError, match=r"faults: stage\.0\.kind: unknown fault kind"):
         fault_plans(load_rig(), {"stage": [{"kind": "nope"}]})
+
+
+@pytest.mark.parametrize(("port", "simulated", "name"), [
+    ("sim://stage", True, "stage"),
+    ("sim:///stage", True, "stage"),  # read as the sim:// serial handler reads it
+    ("/dev/ttyUSB0", False, None),
+    ("usb://", False, None),
+    ("/dev/serial/by-id/usb-sim://x", False, None),  # only a port that starts with the scheme
+])
+def test_one_predicate_says_a_port_is_simulated(port, simulated, name):
+    assert is_simulated(port) is simulated
+    assert sim_name(port) == name
+
+
+def test_the_method_names_are_the_demosaicers_registry():
+    """The rig file knows the methods without importing processing; the two lists agree."""
+    from m2s2hil.processing.demosaic import METHODS, _registry
+
+    assert tuple(_registry()) == DEMOSAIC_METHODS == METHODS
+    assert all(cls.name == name for name, cls in _registry().items())
+
+
+def test_one_method_check_with_the_callers_error():
+    assert check_demosaic_method("wb") == "wb"
+    with pytest.raises(UsageError, match=r"unknown demosaicing method 'magic'; known: superpixel, "):
+        check_demosaic_method("magic")
+    with pytest.raises(ValueError, match="--x: unknown demosaicing method"):
+        check_demosaic_method("magic", lambda problem: ValueError(f"--x: {problem}"))

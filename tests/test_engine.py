@@ -179,7 +179,7 @@ def test_disk_space_is_checked_before_anything_moves(tmp_path, monkeypatch) -> N
     """Too little disk at the start: the session pauses, resumable (issue 12, F6), not fails."""
     with session(tmp_path) as (rig, store, engine, _events):
         usage = shutil.disk_usage(tmp_path)
-        monkeypatch.setattr("m2s2hil.store.atomic.shutil.disk_usage",
+        monkeypatch.setattr("m2s2hil.atomic.shutil.disk_usage",
                             lambda p: usage._replace(free=10 * 1024 * 1024))
         engine.start()
         wait_for_state(engine, RunState.PAUSED)
@@ -199,7 +199,7 @@ def test_full_disk_mid_session_suspends_then_resumes_cleanly(tmp_path, monkeypat
         u = real(p)
         return u._replace(free=1024) if full["on"] else u
 
-    monkeypatch.setattr("m2s2hil.store.atomic.shutil.disk_usage", usage)
+    monkeypatch.setattr("m2s2hil.atomic.shutil.disk_usage", usage)
     with session(tmp_path, small_sweep(azimuth_step_deg=30), **MID) as (rig, store, engine, _events):
         def fill_disk(e) -> None:
             if isinstance(e, FrameStored) and e.index == 1:

@@ -8,6 +8,7 @@ import pytest
 from api_support import daemon, sweep
 from engine_helpers import assert_rig_safe, make_engine, small_rig_config, small_sweep
 
+from m2s2hil.analysis.qc import capture_qc_hook
 from m2s2hil.engine.build import build_run
 from m2s2hil.engine.continuous_steps import ContinuousSteps
 from m2s2hil.engine.runner import SessionFailed
@@ -40,11 +41,12 @@ def test_build_run_takes_exactly_one_source_of_the_session(tmp_path) -> None:
             build_run(rig, tmp_path, sweep=small_sweep(), resume="x")
         with pytest.raises(UsageError, match="exactly one"):
             build_run(rig, tmp_path)
-        engine = build_run(rig, tmp_path, sweep=small_sweep(mode="continuous"), capture_qc=False)
+        engine = build_run(rig, tmp_path, sweep=small_sweep(mode="continuous"))
         assert isinstance(engine.steps, ContinuousSteps) and engine.qc is None
         engine.store.close()
-        engine = build_run(rig, tmp_path, sweep=small_sweep())
-        assert isinstance(engine.steps, StopAndGoSteps) and engine.qc is not None
+        hook = capture_qc_hook()  # the front end's (the engine does not import the analysis)
+        engine = build_run(rig, tmp_path, sweep=small_sweep(), qc=hook)
+        assert isinstance(engine.steps, StopAndGoSteps) and engine.qc is hook
         engine.store.close()
     finally:
         rig.close()

@@ -41,7 +41,7 @@ CHILD = textwrap.dedent("""
             time.sleep(0.3)
 
     options = EngineOptions(process_depth=1, store_depth=1)
-    build_run(rig, {root!r}, sweep=sweep, session_id="crashy", options=options, capture_qc=False,
+    build_run(rig, {root!r}, sweep=sweep, session_id="crashy", options=options,
               on_event=on_event).run()
     print("finished", flush=True)
 """)
@@ -79,7 +79,7 @@ def test_kill_9_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path) -
     assert interrupted_sessions(root) == ["crashy"]  # what a restarted daemon picks up
     rig = open_simulated_rig(cfg)
     try:
-        engine = build_run(rig, root, resume="crashy", capture_qc=False)
+        engine = build_run(rig, root, resume="crashy")
         assert engine.status().done == len(before)
         final = engine.run()
         assert final.state is RunState.COMPLETED and final.done == final.total == len(planned)
@@ -127,7 +127,7 @@ def test_a_session_another_process_writes_cannot_be_resumed_here(tmp_path) -> No
     open for writing, a resume here is refused with one line naming that process."""
     import pytest
 
-    from m2s2hil.store.session import SessionLocked
+    from m2s2hil.store.owner_lock import SessionLocked
 
     cfg = small_rig_config()
     SessionStore.create(tmp_path, small_sweep(), cfg, session_id="busy").close()
@@ -147,7 +147,7 @@ def test_a_session_another_process_writes_cannot_be_resumed_here(tmp_path) -> No
         rig = open_simulated_rig(cfg)
         try:
             with pytest.raises(SessionLocked, match=f"process {holder.pid}"):
-                build_run(rig, tmp_path, resume="busy", capture_qc=False)
+                build_run(rig, tmp_path, resume="busy")
             assert rig.world.lamps_on() == frozenset()
         finally:
             rig.close()

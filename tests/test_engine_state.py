@@ -141,7 +141,7 @@ def test_policy_is_data_and_rejects_nonsense() -> None:
 def test_fault_class_of() -> None:
     from m2s2hil.drivers.errors import DeviceGone, DeviceTimeout, FrameIncomplete, MoveNotVerified
 
-    from m2s2hil.store.atomic import DiskFull
+    from m2s2hil.atomic import DiskFull
 
     assert fault_class_of(DeviceTimeout("x")) == "timeout"
     assert fault_class_of(DeviceGone("x")) == "device_gone"

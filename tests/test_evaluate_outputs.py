@@ -9,21 +9,16 @@ import math
 import numpy as np
 import pytest
 
-from m2s2hil.analysis import charts, evaluate, table2
 from m2s2hil.analysis.bands import select_bands_pca
-from m2s2hil.analysis.evaluate import (
-    EvalOptions,
-    EvaluationResult,
-    FrameJob,
-    band_report,
-    evaluate_job,
-    json_safe,
-    write_evaluation,
-)
-from m2s2hil.analysis.options import mtc_predictor
-from m2s2hil.analysis.sam import SamSegmenter
-from m2s2hil.analysis.segment import register_segmenter
-from m2s2hil.analysis.synthetic import synthetic_scene
+from m2s2hil.analysis.evaluation import evaluate, table2
+from m2s2hil.analysis.evaluation.evaluate import EvaluationResult, band_report, evaluate_job
+from m2s2hil.analysis.evaluation.jobs import FrameJob
+from m2s2hil.analysis.evaluation.options import EvalOptions, mtc_predictor
+from m2s2hil.analysis.report import charts
+from m2s2hil.analysis.report.evaluation_files import json_safe, write_evaluation
+from m2s2hil.analysis.segmenters.registry import register_segmenter
+from m2s2hil.analysis.segmenters.sam import SamSegmenter
+from m2s2hil.analysis.study.synthetic import synthetic_scene
 
 BANDS_NM = [431.0, 479.0, 515.0, 567.0, 611.0, 666.0, 719.0, 775.0, 820.0, 877.0]
 

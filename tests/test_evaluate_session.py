@@ -12,15 +12,12 @@ import pytest
 from cli_support import run_cli
 
 from m2s2hil.analysis import SpectralSegmenter, match_clusters, segmentation_scores
-from m2s2hil.analysis.evaluate import (
-    EvalOptions,
-    EvaluationError,
-    collect_jobs,
-    evaluate_jobs,
-    simulate_session,
-    write_evaluation,
-)
-from m2s2hil.analysis.parallel import SchedulerUnavailable, dask_client
+from m2s2hil.analysis.evaluation.evaluate import evaluate_jobs
+from m2s2hil.analysis.evaluation.jobs import EvaluationError, collect_jobs
+from m2s2hil.analysis.evaluation.options import EvalOptions
+from m2s2hil.analysis.evaluation.parallel import SchedulerUnavailable, dask_client
+from m2s2hil.analysis.report.evaluation_files import write_evaluation
+from m2s2hil.analysis.study.stability import simulate_session
 from m2s2hil.store.export import export_session
 from m2s2hil.store.session import SessionStore
 

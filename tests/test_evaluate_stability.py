@@ -7,7 +7,7 @@ import io
 
 import cv2
 
-from m2s2hil.analysis.evaluate import SCENARIOS, stability_study
+from m2s2hil.analysis.study.stability import SCENARIOS, stability_study
 
 
 def test_stability_study_small(tmp_path):

@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from m2s2hil.analysis import table2
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.evaluate import EvalOptions, EvaluationResult, labels_to_cube, speed_accuracy
+from m2s2hil.analysis.evaluation import table2
+from m2s2hil.analysis.evaluation.aggregates import speed_accuracy
+from m2s2hil.analysis.evaluation.evaluate import EvaluationResult
+from m2s2hil.analysis.evaluation.loading import labels_to_cube
+from m2s2hil.analysis.evaluation.options import EvalOptions
 from m2s2hil.errors import UsageError
 
 

@@ -15,39 +15,16 @@ import cv2
 import numpy as np
 import pytest
 from cli_support import run_cli
+from shared_sessions import N, Written, export_session_of, write_session
 
-from m2s2hil.config import RigConfig, default_rig
-from m2s2hil.plan import Sweep
 from m2s2hil.store.export import ExportError, export_session, to_8bit
 from m2s2hil.store.session import SessionStore
 
-N = 64
 
-
-def small_rig() -> RigConfig:
-    data = default_rig().model_dump(mode="json")
-    data["camera"]["model"].update(width=N, height=N)
-    return RigConfig.model_validate(data)
-
-
-def raw_for(ev) -> np.ndarray:
-    seed = abs(hash(ev.event_id)) % 2**32
-    return np.random.default_rng(seed).integers(0, 1024, (N, N), dtype=np.uint16)
-
-
-def make_session(root, satellite="hubble", build="B2", frames_per_pose=1, session_id=None, **kw):
-    sweep = Sweep(satellite=satellite, build=build, lighting=["weak", "directional"], tilts=["E0", "E2"],
-                  azimuth_step_deg=90, frames_per_pose=frames_per_pose, dark={"frames": 2}, **kw)
-    st = SessionStore.create(root, sweep, small_rig(), session_id=session_id)
-    raws = {}
-    for ev in sweep.expand(st.rig):
-        if ev.kind == "dark":
-            st.write_dark(ev, np.full((N, N), 3.0, np.float32))
-            continue
-        raws[ev.event_id] = raw_for(ev)
-        st.write_frame(ev, raws[ev.event_id], meta={
-            "temperature_c": 30.5, "pose": {"turntable_deg": ev.azimuth_deg + 0.01, "tilt_deg": ev.tilt_deg}})
-    return st, raws
+@pytest.fixture
+def hubble(shared_sessions) -> Written:
+    """Hubble B2, written once per test process; the tests here only read it."""
+    return export_session_of(shared_sessions)
 
 
 def read_png(path) -> np.ndarray:
@@ -62,8 +39,8 @@ def test_to_8bit_drops_the_two_low_bits():
     assert to_8bit(np.array([200], np.uint16), 8).tolist() == [200]
 
 
-def test_m2s2_layout_paths_bit_depths_and_metadata(tmp_path):
-    st, raws = make_session(tmp_path / "data")
+def test_m2s2_layout_paths_bit_depths_and_metadata(tmp_path, hubble):
+    st, raws = hubble.open(), hubble.arrays
     out = tmp_path / "out"
     res = export_session(st, out, "m2s2")
     assert res.images == 16
@@ -101,7 +78,7 @@ def test_m2s2_layout_paths_bit_depths_and_metadata(tmp_path):
 
 
 def test_extra_frames_per_pose_get_indices_after_the_azimuths(tmp_path):
-    st, _ = make_session(tmp_path / "data", frames_per_pose=2)
+    st, _ = write_session(tmp_path / "data", frames_per_pose=2)
     export_session(st, tmp_path / "out", "m2s2")
     names = sorted(p.name for p in (tmp_path / "out" / "HIL" / "Hubble" / "b2" / "e0").glob("solo_*.png"))
     assert names == sorted(f"solo_{k}.png" for k in range(8))
@@ -111,8 +88,8 @@ def test_extra_frames_per_pose_get_indices_after_the_azimuths(tmp_path):
     st.close()
 
 
-def test_existing_files_are_not_overwritten_unless_asked(tmp_path):
-    st, _ = make_session(tmp_path / "data")
+def test_existing_files_are_not_overwritten_unless_asked(tmp_path, hubble):
+    st = hubble.open()
     export_session(st, tmp_path / "out", "m2s2")
     with pytest.raises(ExportError, match="already exists"):
         export_session(st, tmp_path / "out", "m2s2")
@@ -122,19 +99,18 @@ def test_existing_files_are_not_overwritten_unless_asked(tmp_path):
     st.close()
 
 
-def test_cli_export_by_id_and_by_folder(tmp_path):
-    st, _ = make_session(tmp_path / "data", session_id="cli1")
-    st.close()
-    res = run_cli("export", "cli1", "--layout", "m2s2", "--out", tmp_path / "o1", "--root", tmp_path / "data")
+def test_cli_export_by_id_and_by_folder(tmp_path, hubble):
+    sid, root = hubble.session_id, hubble.root
+    res = run_cli("export", sid, "--layout", "m2s2", "--out", tmp_path / "o1", "--root", root)
     assert res.exit_code == 0, res.output
     assert "exported 16 image(s)" in res.output
     assert (tmp_path / "o1" / "HIL" / "Hubble" / "b2" / "e2" / "dir_3.png").is_file()
-    res = run_cli("export", tmp_path / "data" / "cli1", "--layout", "hf", "--out", tmp_path / "o2")
+    res = run_cli("export", hubble.path, "--layout", "hf", "--out", tmp_path / "o2")
     assert res.exit_code == 0, res.output
-    assert (tmp_path / "o2" / "data" / "train-cli1.parquet").is_file()
-    res = run_cli("export", "cli1", "--layout", "tar", "--out", tmp_path / "o3", "--root", tmp_path / "data")
+    assert (tmp_path / "o2" / "data" / f"train-{sid}.parquet").is_file()
+    res = run_cli("export", sid, "--layout", "tar", "--out", tmp_path / "o3", "--root", root)
     assert res.exit_code == 2 and "--layout must be one of" in res.stderr
-    res = run_cli("export", "missing", "--out", tmp_path / "o4", "--root", tmp_path / "data")
+    res = run_cli("export", "missing", "--out", tmp_path / "o4", "--root", root)
     assert res.exit_code == 2 and "no session 'missing'" in res.stderr
 
 
@@ -155,17 +131,16 @@ with SessionStore.open_path(sys.argv[1]) as st:
 @pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None,
                     reason="needs root to run the export as another user (setpriv)")
 @pytest.mark.slow  # a subprocess: ~8 s
-def test_an_archived_read_only_session_exports_and_is_left_untouched(layout="m2s2"):
+def test_an_archived_read_only_session_exports_and_is_left_untouched(hubble, layout="m2s2"):
     """The export runs as an unprivileged user on a session folder that user cannot write
     (root ignores permissions, so it would not prove anything)."""
     base = Path(tempfile.mkdtemp(prefix="m2s2hil-ro-", dir="/tmp"))
     try:
         base.chmod(0o755)
-        st, _ = make_session(base / "data", session_id="ro")
-        st.complete()
-        st.close()
+        folder = hubble.copy_to(base / "data").path
+        with SessionStore.open_path(folder, mode="write") as st:
+            st.complete()
         (base / "data").chmod(0o755)
-        folder = base / "data" / "ro"
         for p in [folder, *folder.rglob("*")]:
             p.chmod(0o555 if p.is_dir() else 0o444)
         out = base / "out"
@@ -187,13 +162,13 @@ def test_an_archived_read_only_session_exports_and_is_left_untouched(layout="m2s
 
 
 @pytest.mark.parametrize("layout", ["m2s2", "hf"])
-def test_exporting_records_nothing_in_the_session(tmp_path, layout):
-    st, _ = make_session(tmp_path / "data", session_id="ro")
-    st.complete()
-    st.close()
-    with SessionStore.open_path(tmp_path / "data" / "ro") as ro:
+def test_exporting_records_nothing_in_the_session(tmp_path, hubble, layout):
+    mine = hubble.copy_to(tmp_path / "data")
+    with SessionStore.open_path(mine.path, mode="write") as st:
+        st.complete()
+    with SessionStore.open_path(mine.path) as ro:
         n_events = len(ro.events())
         export_session(ro, tmp_path / "out", layout)
-    with SessionStore.open_path(tmp_path / "data" / "ro") as ro:
+    with SessionStore.open_path(mine.path) as ro:
         assert len(ro.events()) == n_events
         assert not [e for e in ro.events() if e["kind"] == "export"]

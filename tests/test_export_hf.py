@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_export import N, make_session
+from shared_sessions import N, export_session_of
 
 from m2s2hil.store.export import export_session
 
@@ -19,9 +19,9 @@ def datasets(tmp_path, monkeypatch):
     return ds
 
 
-def test_hf_export_loads_offline_and_gives_the_exact_raw_values(tmp_path, datasets):
-    a, raws_a = make_session(tmp_path / "data", "hubble", "B2")
-    b, raws_b = make_session(tmp_path / "data", "iss", "B1")
+def test_hf_export_loads_offline_and_gives_the_exact_raw_values(tmp_path, datasets, shared_sessions):
+    written_a, written_b = export_session_of(shared_sessions), export_session_of(shared_sessions, "iss", "B1")
+    (a, raws_a), (b, raws_b) = (written_a.open(), written_a.arrays), (written_b.open(), written_b.arrays)
     out = tmp_path / "hf"
     export_session(a, out, "hf")
     export_session(b, out, "hf")  # a second session merges into the same dataset

@@ -4,19 +4,28 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_export import N, make_session
+from shared_sessions import N, Written, export_session_of
 
-from m2s2hil.analysis.jobs import collect_jobs
-from m2s2hil.analysis.loading import load_cube, load_truth
+from m2s2hil.analysis.evaluation.jobs import collect_jobs
+from m2s2hil.analysis.evaluation.loading import load_cube, load_truth
 from m2s2hil.store.export import ExportError, export_session
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("zarr")
 
 
-def test_zarr_store_opens_lazily_with_coordinates_and_exact_raws(tmp_path):
-    a, raws_a = make_session(tmp_path / "data", "hubble", "B2")
-    b, raws_b = make_session(tmp_path / "data", "iss", "B1")
+@pytest.fixture
+def hubble(shared_sessions) -> Written:
+    return export_session_of(shared_sessions)
+
+
+@pytest.fixture
+def iss(shared_sessions) -> Written:
+    return export_session_of(shared_sessions, "iss", "B1")
+
+
+def test_zarr_store_opens_lazily_with_coordinates_and_exact_raws(tmp_path, hubble, iss):
+    (a, raws_a), (b, raws_b) = (hubble.open(), hubble.arrays), (iss.open(), iss.arrays)
     out = tmp_path / "all.zarr"
     assert export_session(a, out, "zarr").images == 16
     assert export_session(b, out, "zarr").images == 16  # appended along frame
@@ -42,13 +51,13 @@ def test_zarr_store_opens_lazily_with_coordinates_and_exact_raws(tmp_path):
     b.close()
 
 
-def test_evaluate_reads_the_zarr_store_like_the_session(tmp_path):
-    st, _ = make_session(tmp_path / "data", "hubble", "B2")
+def test_evaluate_reads_the_zarr_store_like_the_session(tmp_path, hubble):
+    st = hubble.open()
     out = tmp_path / "one.zarr"
     export_session(st, out, "zarr")
     jobs, desc = collect_jobs(out)
     assert len(jobs) == 16 and desc[0].startswith("zarr export")
-    from m2s2hil.analysis.jobs import session_jobs
+    from m2s2hil.analysis.evaluation.jobs import session_jobs
 
     by_id = {j.image_id: j for j in session_jobs(st)}
     for job in jobs[:3]:
@@ -64,10 +73,11 @@ def _scores(results: dict) -> dict:
 
 
 @pytest.mark.slow  # starts a local Dask cluster
-def test_evaluate_and_its_dask_mode_give_the_session_results_from_the_zarr_store(tmp_path):
-    from m2s2hil.analysis.evaluate import EvalOptions, evaluate_jobs
+def test_evaluate_and_its_dask_mode_give_the_session_results_from_the_zarr_store(tmp_path, hubble):
+    from m2s2hil.analysis.evaluation.evaluate import evaluate_jobs
+    from m2s2hil.analysis.evaluation.options import EvalOptions
 
-    st, _ = make_session(tmp_path / "data", "hubble", "B2")
+    st = hubble.open()
     out = tmp_path / "one.zarr"
     export_session(st, out, "zarr")
     zjobs, _ = collect_jobs(out)

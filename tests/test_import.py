@@ -12,10 +12,11 @@ from cli_support import run_cli
 
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.plan import Sweep
+from m2s2hil.store.catalogue import list_sessions
 from m2s2hil.store.export import export_session
 from m2s2hil.store.frame_files import encode_png
 from m2s2hil.store.importer import DatasetImportError, import_dataset
-from m2s2hil.store.session import SessionStore, list_sessions
+from m2s2hil.store.session import SessionStore
 
 N = 64
 

@@ -28,7 +28,8 @@ from m2s2hil.engine.darks import LENS_CAP_REASON, LENS_UNCAP_REASON
 from m2s2hil.engine.state import IllegalTransition, RunState
 from m2s2hil.rig.factory import open_simulated_rig
 from m2s2hil.rig.opened import Rig
-from m2s2hil.store.session import SessionStore, list_sessions
+from m2s2hil.store.catalogue import list_sessions
+from m2s2hil.store.session import SessionStore
 from tests import api_support
 from tests.engine_helpers import make_engine, small_rig_config, small_sweep
 from tests.test_capture_cli import small_rig

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.evaluate import simulate_session
 from m2s2hil.analysis.qc import (
     CaptureQC,
     QcConfig,
@@ -19,8 +18,9 @@ from m2s2hil.analysis.qc import (
     qc_of_meta,
     qc_summary,
 )
-from m2s2hil.analysis.report_html import write_session_report
-from m2s2hil.analysis.synthetic import synthetic_scene
+from m2s2hil.analysis.report.session_html import write_session_report
+from m2s2hil.analysis.study.stability import simulate_session
+from m2s2hil.analysis.study.synthetic import synthetic_scene
 from m2s2hil.store.session import SessionStore
 
 

@@ -71,7 +71,7 @@ def test_a_changed_rig_needs_allow_rig_change_and_the_error_says_so(tmp_path):
     config = load_rig(None)
     rig = open_simulated_rig(config)
     try:
-        engine = build_run(rig, root, sweep=small_sweep(), capture_qc=False)
+        engine = build_run(rig, root, sweep=small_sweep())
         sid = engine.session_id
         engine.store.close()
     finally:
@@ -82,9 +82,9 @@ def test_a_changed_rig_needs_allow_rig_change_and_the_error_says_so(tmp_path):
     rig = open_simulated_rig(changed)
     try:
         with pytest.raises(RigChanged) as info:
-            build_run(rig, root, resume=sid, capture_qc=False)
+            build_run(rig, root, resume=sid)
         assert f"capture --resume {sid} --allow-rig-change" in str(info.value)
-        engine = build_run(rig, root, resume=sid, capture_qc=False, allow_rig_change=True)
+        engine = build_run(rig, root, resume=sid, allow_rig_change=True)
         assert engine.session_id == sid
         engine.store.close()
     finally:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_export import make_session
+from shared_sessions import write_session as make_session
 
 from m2s2hil.store.export import export_session
 from m2s2hil.store.importer import DatasetImportError, import_dataset

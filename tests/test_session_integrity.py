@@ -20,14 +20,11 @@ from m2s2hil.engine.build import build_run
 from m2s2hil.engine.runner import SessionFailed
 from m2s2hil.engine.state import RunState
 from m2s2hil.rig.factory import open_simulated_rig
+from m2s2hil.store.catalogue import list_sessions
+from m2s2hil.store.errors import ReadOnlySession, SessionDamaged
+from m2s2hil.store.owner_lock import SessionLocked
 from m2s2hil.store.repair import repair_session
-from m2s2hil.store.session import (
-    ReadOnlySession,
-    SessionDamaged,
-    SessionLocked,
-    SessionStore,
-    list_sessions,
-)
+from m2s2hil.store.session import SessionStore
 
 S = RunState
 FRAME_IDS = ["weak/E1/az000/f0", "weak/E1/az090/f0", "weak/E1/az180/f0", "weak/E1/az270/f0"]
@@ -120,7 +117,7 @@ def test_resume_moves_a_missing_and_a_truncated_frame_aside_and_captures_them_ag
     damaged.write_bytes(damaged.read_bytes()[:1000])  # truncated
     rig = open_simulated_rig(small_rig_config())
     try:
-        engine = build_run(rig, root, resume="s1", capture_qc=False)
+        engine = build_run(rig, root, resume="s1")
         assert {e for e in engine.store.completed_event_ids() if "/E1/" in e} == {FRAME_IDS[0], FRAME_IDS[3]}
         final = engine.run()
         assert final.state is S.COMPLETED and final.done == final.total
@@ -170,7 +167,7 @@ def test_a_damaged_journal_is_found_before_anything_is_written_and_repair_rebuil
     rig = open_simulated_rig(small_rig_config())
     try:
         with pytest.raises(SessionDamaged, match="sessions repair bad"):
-            build_run(rig, root, resume="bad", capture_qc=False)
+            build_run(rig, root, resume="bad")
         assert _digest(journal) == before  # refused before writing anything
         assert rig.world.lamps_on() == frozenset()
 
@@ -182,7 +179,7 @@ def test_a_damaged_journal_is_found_before_anything_is_written_and_repair_rebuil
             assert sorted(f.event_id for f in st.frames()) == FRAME_IDS
             assert st.frames()[0].meta["session_id"] == "bad"
         # The repaired session resumes like any other: nothing left to capture.
-        engine = build_run(rig, root, resume="bad", capture_qc=False)
+        engine = build_run(rig, root, resume="bad")
         assert engine.run().state is S.COMPLETED
         engine.store.close()
     finally:
@@ -201,7 +198,7 @@ def test_repair_without_a_manifest_quarantines_a_damaged_frame_for_the_resume(tm
     assert any(q.endswith("weak_E1_az090_f0.raw.tiff") for q in report.quarantined)
     rig = open_simulated_rig(small_rig_config())
     try:
-        engine = build_run(rig, root, resume="s1", capture_qc=False)
+        engine = build_run(rig, root, resume="s1")
         assert engine.run().state is S.COMPLETED
         assert sorted(f.event_id for f in engine.store.frames()) == FRAME_IDS
         assert engine.store.verify() == []
@@ -449,7 +446,7 @@ def test_a_frame_damaged_after_it_was_stored_fails_the_run_and_the_resume_recapt
     root = tmp_path / "data"
     rig = open_simulated_rig(small_rig_config())
     try:
-        engine = build_run(rig, root, resume="s1", capture_qc=False)
+        engine = build_run(rig, root, resume="s1")
         assert [p.kind for p in engine.quarantined] == ["checksum"]
         assert engine.run().state is S.COMPLETED
         assert engine.store.verify() == [] and sorted(f.event_id for f in engine.store.frames()) == FRAME_IDS

@@ -14,24 +14,18 @@ import numpy as np
 import pytest
 import tifffile
 
-import m2s2hil.store.atomic as atomic
+import m2s2hil.atomic as atomic
+from m2s2hil.atomic import DiskFull, check_free_space
 from m2s2hil.config import RigConfig, StorageConfig, default_rig
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.plan import Sweep
+from m2s2hil.store.catalogue import default_data_root, list_sessions
+from m2s2hil.store.errors import SessionCorrupt, SessionExists, SessionNotFound
+from m2s2hil.store.estimates import estimate_frame_bytes
+from m2s2hil.store.frame_files import InvalidImage
 from m2s2hil.store.frame_meta import MetadataConflict
-from m2s2hil.store.session import (
-    DiskFull,
-    DuplicateEvent,
-    InvalidImage,
-    SessionCorrupt,
-    SessionExists,
-    SessionNotFound,
-    SessionStore,
-    check_free_space,
-    default_data_root,
-    estimate_frame_bytes,
-    list_sessions,
-)
+from m2s2hil.store.journal import DuplicateEvent
+from m2s2hil.store.session import SessionStore
 
 N = 64
 
@@ -405,3 +399,28 @@ def test_metadata_with_a_nested_shape_key_reads_back(tmp_path):
     assert np.array_equal(tifffile.imread(io.BytesIO(data)), raw)
     cube = np.zeros((3, 4, 5), np.float32)
     assert tifffile.imread(io.BytesIO(encode_tiff(cube, {"dark": {"shape": [1]}}))).shape == (3, 4, 5)
+
+
+def test_a_stored_dark_is_rebuilt_with_its_provenance_by_the_store_and_the_analysis_loader(store):
+    """One rebuild (store.cubes.master_dark_from): the evaluation loader's copy used to drop the
+    read noise, the camera serial and the reduction of the dark it reads from the session."""
+    from m2s2hil.analysis.evaluation.jobs import session_jobs
+    from m2s2hil.analysis.evaluation.loading import load_dark
+    from m2s2hil.processing.dark import build_master_dark
+    from m2s2hil.store.cubes import master_dark_of
+
+    dark = store.sweep.expand(store.rig)[0]
+    assert dark.kind == "dark"
+    rng = np.random.default_rng(3)
+    snaps = [rng.normal(40.0, 2.0, (N, N)).clip(0, 1023).astype(np.uint16) for _ in range(2)]
+    master = build_master_dark(snaps, reduce="median", exposure_s=dark.exposure_s, gain=dark.gain,
+                               temperature_c=[30.0, 30.5], camera="TOUCAN-SN-42")
+    assert master.read_noise_dn is not None
+    rec = store.write_dark(dark, master.data, master.provenance())
+    write(store, frame_events(store)[0])
+    (job,) = [j for j in session_jobs(store) if j.dark is not None][:1]
+    loaded, rebuilt = load_dark(job), master_dark_of(store, rec)
+    assert loaded is not None
+    assert (loaded.read_noise_dn, loaded.camera_serial, loaded.reduce) == (master.read_noise_dn,
+                                                                          "TOUCAN-SN-42", "median")
+    assert loaded.provenance() == rebuilt.provenance() == master.provenance()

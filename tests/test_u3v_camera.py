@@ -7,6 +7,7 @@ driver's own I/O is never mocked. Most tests use a 64x64 sensor on a virtual clo
 from __future__ import annotations
 
 import errno
+import itertools
 
 import numpy as np
 import pytest
@@ -17,7 +18,9 @@ from m2s2hil.drivers.u3v import U3VCamera
 from m2s2hil.drivers.u3v_control import GenCPError
 from m2s2hil.protocols import u3v
 from m2s2hil.simulators.fault_injection import FaultPlan
-from m2s2hil.simulators.toucan import FeatureReg, GradientSource, ToucanCamera
+from m2s2hil.simulators.toucan import ToucanCamera
+from m2s2hil.simulators.toucan_register_map import FEATURES_ADDRESS, REGISTERS, Access, FeatureReg
+from m2s2hil.simulators.toucan_render import GradientSource
 from m2s2hil.simulators.u3v_backend import SimUsbBackend
 
 W = H = 64
@@ -446,3 +449,46 @@ def test_device_capability_says_what_the_camera_has(rig):
     assert u3v.decode_string(control.read(u3v.ABRM.USER_DEFINED_NAME, u3v.STRING_LENGTH)) == "bench-2"
     assert control.read_u32(u3v.ABRM.PROTOCOL_ENDIANNESS) == 0xFFFFFFFF
     assert control.read_u64(u3v.ABRM.TIMESTAMP_INCREMENT) == 1
+
+
+# -- the register table ----------------------------------------------------------------
+
+
+def test_register_table_has_no_overlapping_registers():
+    regs = sorted(REGISTERS, key=lambda r: r.address)
+    assert len({r.name for r in regs}) == len(regs)
+    for a, b in itertools.pairwise(regs):
+        assert a.address + a.width <= b.address, f"{a.name} (0x{a.address:X}, {a.width} B) overlaps {b.name}"
+    assert all(r.source for r in regs)  # each fact says where it comes from
+
+
+def test_feature_registers_sit_where_the_genicam_xml_says():
+    import importlib.resources
+    import xml.etree.ElementTree as ET
+
+    xml = importlib.resources.files("m2s2hil.simulators").joinpath("data", "toucan_genicam.xml").read_bytes()
+    root = ET.fromstring(xml)
+    ns = root.tag.split("}")[0] + "}" if root.tag.startswith("{") else ""
+    in_xml = {el.get("Name"): int(el.findtext(f"{ns}Address") or "-1", 0)
+              for el in root.iter() if el.findtext(f"{ns}Address") is not None}
+    features = [r for r in REGISTERS if r.address >= FEATURES_ADDRESS]
+    assert {r.name: r.address for r in features} == {r.name: in_xml[f"{r.name}Reg"] for r in features}
+
+
+def test_every_register_answers_its_documented_default_through_the_driver(vclock):
+    """A camera built with the constructor's defaults, read through the driver right after it
+    opened: each readable register holds the table's default; a read-only one refuses a write
+    and keeps it, a writable one takes its default back."""
+    sim = ToucanCamera(clock=vclock)
+    with U3VCamera.open(backend=SimUsbBackend(sim), clock=vclock) as cam:
+        control = cam.control
+        for reg in REGISTERS:
+            if not reg.readable:
+                continue
+            assert reg.decode(control.read(reg.address, reg.width)) == reg.default, reg.name
+            if reg.access is Access.RO:
+                with pytest.raises(GenCPError):
+                    control.write(reg.address, reg.encode(reg.default))
+            else:
+                control.write(reg.address, reg.encode(reg.default))
+            assert reg.decode(control.read(reg.address, reg.width)) == reg.default, reg.name

@@ -92,12 +92,13 @@ def test_session_is_byte_exact(scripted):
             (cmd("1 1 11"), rep("01 1 11 OK IDLE -- 0")),
             (cmd("1 1 12 get pos"), rep("01 1 12 OK IDLE -- 0")),
             (cmd("1 1 13 move abs 900"), rep("01 1 13 OK BUSY -- 0")),
-            (cmd("1 1 14"), rep("01 1 14 OK BUSY -- 0")),
-            (cmd("1 1 15"), rep("01 1 15 OK IDLE -- 0")),
-            (cmd("1 1 16 get pos"), rep("01 1 16 OK IDLE -- 900")),
+            # The wait polls ``get pos``: its reply carries BUSY/IDLE and the position together.
+            (cmd("1 1 14 get pos"), rep("01 1 14 OK BUSY -- 450")),
+            (cmd("1 1 15 get pos"), rep("01 1 15 OK IDLE -- 900")),
+            (cmd("1 1 16 get pos"), rep("01 1 16 OK IDLE -- 900")),  # read-back
             (cmd("1 1 17 move vel -819"), rep("01 1 17 OK BUSY -- 0")),
             (cmd("1 1 18 stop"), rep("01 1 18 OK BUSY NI 0")),
-            (cmd("1 1 19"), rep("01 1 19 OK IDLE NI 0")),
+            (cmd("1 1 19 get pos"), rep("01 1 19 OK IDLE NI -300")),
         ]
     )
     assert zd.info == {

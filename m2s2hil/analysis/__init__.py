@@ -4,89 +4,72 @@ Conventions (details in each module and in docs/analysis.md):
 cubes are float ``(bands, H, W)``; label maps are int ``(H, W)`` with 0 = background;
 band numbers are 0-based in the API and 1-based in reports.
 
-- ``metrics``: per-class / macro precision, recall, Dice; micro-IoU.
-- ``matching``: oracle Hungarian matching of cluster ids to ground-truth classes.
-- ``significance``: paired t-test with an assumed correlation ρ and a ρ sweep.
-- ``mtc``: ground-truth-free consistency under K random integer translations.
-- ``bands``: PCA band selection.
-- ``rgb``: wavelength→RGB (Bruton, γ = 0.8) and the RGB baseline.
-- ``segment``: the ``Segmenter`` protocol and registry; ``spectral`` (default) and
-  ``sam`` (optional extra) implement it; ``compositing`` holds the SAM mask→map steps.
-- ``synthetic``: small scenes with known ground truth.
+Parts, each a subpackage, imports pointing down this list (pyproject ``[tool.importlinter]``):
+
+- ``study``: simulated sessions, the capture-stability study, simulated and synthetic scenes.
+- ``report``: the evaluation's report folder and charts; a session's HTML QC report.
+- ``evaluation``: jobs, loading, options, the Dask driver, Table 2. ``qc`` (capture-time
+  QC, a module) sits beside it.
+- ``metrics``: precision, recall, Dice, micro-IoU (``scores``); mTC; the paired t-test.
+- ``segmenters``: the ``Segmenter`` protocol and registry; ``spectral`` (default), ``sam``
+  (optional extra), ``compositing`` (SAM mask→map steps, label-map fusion), ``rgb``.
+- shared leaves: ``bands`` (PCA band selection, the paper's bands), ``matching`` (oracle
+  Hungarian matching of cluster ids to classes), ``cie1931``, ``arrays``, ``errors``.
+
+The names below load lazily (on first use), so importing one part, e.g. ``analysis.qc``,
+does not import every other part and its libraries.
 """
 
-from m2s2hil.analysis.bands import BandSelection, select_bands_pca
-from m2s2hil.analysis.compositing import (
-    binary_fusion,
-    composite_masks,
-    deduplicate_masks,
-    majority_vote,
-    top_k_masks,
-)
-from m2s2hil.analysis.errors import (
-    AnalysisError,
-    AnalysisInputError,
-    SegmenterUnavailableError,
-    UnknownSegmenterError,
-)
-from m2s2hil.analysis.matching import ClusterMatch, match_clusters
-from m2s2hil.analysis.metrics import SegmentationScores, micro_iou, score_clusters, segmentation_scores
-from m2s2hil.analysis.mtc import MTCResult, band_fused_predictor, draw_shifts, mtc
-from m2s2hil.analysis.rgb import (
-    RgbBaseline,
-    band_colours,
-    camera_rgb,
-    camera_weights,
-    render_rgb,
-    wavelength_to_rgb,
-)
-from m2s2hil.analysis.segment import (
-    Segmenter,
-    create_segmenter,
-    register_segmenter,
-    run_segmenter,
-    segmenter_names,
-)
-from m2s2hil.analysis.significance import PairedTest, format_sensitivity, paired_t_test, rho_sensitivity
-from m2s2hil.analysis.spectral import SpectralSegmentation, SpectralSegmenter
+from __future__ import annotations
 
-__all__ = [
-    "AnalysisError",
-    "AnalysisInputError",
-    "BandSelection",
-    "ClusterMatch",
-    "MTCResult",
-    "PairedTest",
-    "RgbBaseline",
-    "SegmentationScores",
-    "Segmenter",
-    "SegmenterUnavailableError",
-    "SpectralSegmentation",
-    "SpectralSegmenter",
-    "UnknownSegmenterError",
-    "band_colours",
-    "band_fused_predictor",
-    "binary_fusion",
-    "camera_rgb",
-    "camera_weights",
-    "composite_masks",
-    "create_segmenter",
-    "deduplicate_masks",
-    "draw_shifts",
-    "format_sensitivity",
-    "majority_vote",
-    "match_clusters",
-    "micro_iou",
-    "mtc",
-    "paired_t_test",
-    "register_segmenter",
-    "render_rgb",
-    "rho_sensitivity",
-    "run_segmenter",
-    "score_clusters",
-    "segmentation_scores",
-    "segmenter_names",
-    "select_bands_pca",
-    "top_k_masks",
-    "wavelength_to_rgb",
-]
+from importlib import import_module
+from typing import Any
+
+_EXPORTS = {
+    "BandSelection": "m2s2hil.analysis.bands",
+    "select_bands_pca": "m2s2hil.analysis.bands",
+    "binary_fusion": "m2s2hil.analysis.segmenters.compositing",
+    "composite_masks": "m2s2hil.analysis.segmenters.compositing",
+    "deduplicate_masks": "m2s2hil.analysis.segmenters.compositing",
+    "majority_vote": "m2s2hil.analysis.segmenters.compositing",
+    "top_k_masks": "m2s2hil.analysis.segmenters.compositing",
+    "AnalysisError": "m2s2hil.analysis.errors",
+    "AnalysisInputError": "m2s2hil.analysis.errors",
+    "SegmenterUnavailableError": "m2s2hil.analysis.errors",
+    "UnknownSegmenterError": "m2s2hil.analysis.errors",
+    "ClusterMatch": "m2s2hil.analysis.matching",
+    "match_clusters": "m2s2hil.analysis.matching",
+    "SegmentationScores": "m2s2hil.analysis.metrics.scores",
+    "micro_iou": "m2s2hil.analysis.metrics.scores",
+    "score_clusters": "m2s2hil.analysis.metrics.scores",
+    "segmentation_scores": "m2s2hil.analysis.metrics.scores",
+    "MTCResult": "m2s2hil.analysis.metrics.mtc",
+    "band_fused_predictor": "m2s2hil.analysis.metrics.mtc",
+    "draw_shifts": "m2s2hil.analysis.metrics.mtc",
+    "mtc": "m2s2hil.analysis.metrics.mtc",
+    "RgbBaseline": "m2s2hil.analysis.segmenters.rgb",
+    "band_colours": "m2s2hil.analysis.segmenters.rgb",
+    "camera_rgb": "m2s2hil.analysis.segmenters.rgb",
+    "camera_weights": "m2s2hil.analysis.segmenters.rgb",
+    "render_rgb": "m2s2hil.analysis.segmenters.rgb",
+    "wavelength_to_rgb": "m2s2hil.analysis.segmenters.rgb",
+    "Segmenter": "m2s2hil.analysis.segmenters.registry",
+    "create_segmenter": "m2s2hil.analysis.segmenters.registry",
+    "register_segmenter": "m2s2hil.analysis.segmenters.registry",
+    "run_segmenter": "m2s2hil.analysis.segmenters.registry",
+    "segmenter_names": "m2s2hil.analysis.segmenters.registry",
+    "PairedTest": "m2s2hil.analysis.metrics.significance",
+    "format_sensitivity": "m2s2hil.analysis.metrics.significance",
+    "paired_t_test": "m2s2hil.analysis.metrics.significance",
+    "rho_sensitivity": "m2s2hil.analysis.metrics.significance",
+    "SpectralSegmentation": "m2s2hil.analysis.segmenters.spectral",
+    "SpectralSegmenter": "m2s2hil.analysis.segmenters.spectral",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'm2s2hil.analysis' has no attribute {name!r}")

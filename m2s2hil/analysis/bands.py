@@ -32,6 +32,9 @@ from sklearn.preprocessing import StandardScaler
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
 
+# The bands of the paper's binary mTC (HIL setting), 1-based as the paper numbers them.
+PAPER_BANDS: tuple[int, ...] = (5, 9, 10)
+
 
 @dataclass(frozen=True)
 class BandSelection:

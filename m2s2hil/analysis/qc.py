@@ -60,8 +60,8 @@ from skimage.filters import threshold_otsu
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.metrics import micro_iou
-from m2s2hil.analysis.spectral import SpectralSegmenter
+from m2s2hil.analysis.metrics.scores import micro_iou
+from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
 
 QC_VERSION = 1
 FLAGS = ("unstable", "saturated", "underexposed", "no_object", "object_cut")

@@ -14,12 +14,12 @@ import math
 import threading
 from pathlib import Path
 
+from m2s2hil.atomic import DiskFull, check_free_space
 from m2s2hil.config import RigConfig
 from m2s2hil.errors import UsageError
 from m2s2hil.plan import Sweep
 from m2s2hil.processing.demosaic import check_method
-from m2s2hil.store.atomic import DiskFull, check_free_space
-from m2s2hil.store.session import estimate_frame_bytes
+from m2s2hil.store.estimates import estimate_frame_bytes
 
 from .errors import PlanTooLarge
 
@@ -46,7 +46,7 @@ def planned_dark_count(sweep: Sweep) -> int:
 
 def estimate_bytes(sweep: Sweep, cfg: RigConfig, frames: int) -> int:
     """Bytes the session will need, from the counts (the same figures as
-    :func:`m2s2hil.store.session.estimate_session_bytes`, which expands the plan)."""
+    :func:`m2s2hil.store.estimates.estimate_session_bytes`, which expands the plan)."""
     m = cfg.camera.model
     return frames * estimate_frame_bytes(cfg, sweep.processing) + planned_dark_count(sweep) * (
         m.width * m.height * 4 + 65536)

@@ -38,7 +38,7 @@ from typing import Any
 from fastapi import APIRouter, Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
-from m2s2hil.store.session import software_version
+from m2s2hil.store.folder import software_version
 
 from . import (
     handlers,
@@ -139,8 +139,8 @@ def _document_catalog_names(app: FastAPI) -> None:
     from fastapi.openapi.utils import get_openapi
 
     from m2s2hil.catalog import load_catalog
+    from m2s2hil.config import DEMOSAIC_METHODS
     from m2s2hil.plan import AXES
-    from m2s2hil.processing.demosaic import METHODS as DEMOSAIC_METHODS
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

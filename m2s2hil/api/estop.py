@@ -49,18 +49,23 @@ def make_safe(rig: Rig) -> list[str]:
     return [f"{type(e).__name__}: {e}" for e in rig.safe()]
 
 
+def lamps_off(rig: Rig) -> list[str]:
+    """Every lamp off, the stop's first step; what went wrong doing it."""
+    try:
+        rig.lights.set(())
+    except Exception as exc:
+        return [f"lamps off: {type(exc).__name__}: {exc}"]
+    return []
+
+
 def stop_rig(rig: Rig, hw: threading.Lock, job: Job | None, *,
              grace_s: float, timeout_s: float) -> tuple[SafeCheck, list[str]]:
-    """Switch every lamp off; abort ``job``'s engine, if it runs, and give it ``grace_s`` to
+    """After :func:`lamps_off`: abort ``job``'s engine, if it runs, and give it ``grace_s`` to
     reach its own teardown (which stops motion too), then stop the axes from this thread
     anyway (a move is not waited out); once the engine has ended, make safe again (holding
     ``hw``, the request threads' device lock) and read the devices back to confirm.
     Returns the read-back and every error met."""
     errors: list[str] = []
-    try:
-        rig.lights.set(())
-    except Exception as exc:
-        errors.append(f"lamps off: {type(exc).__name__}: {exc}")
     eng = job.engine if job is not None else None
     if eng is not None and not eng.state.terminal:
         request(eng, "abort")

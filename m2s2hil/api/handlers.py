@@ -12,10 +12,11 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from m2s2hil.atomic import DiskFull
+from m2s2hil.daemon.hold import HoldNotSaved
 from m2s2hil.engine.state import IllegalTransition
 from m2s2hil.errors import M2S2Error, UsageError
-from m2s2hil.store.atomic import DiskFull
-from m2s2hil.store.session import SessionCorrupt
+from m2s2hil.store.errors import SessionCorrupt
 
 from .common import error_response
 from .csrf import flat_routes
@@ -81,6 +82,9 @@ def install(app: FastAPI) -> None:
             return error_response(507, _disk_full(exc, submitted=request.url.path == "/sessions"))
         if isinstance(exc, UsageError):
             return error_response(422, str(exc))
+        if isinstance(exc, HoldNotSaved):  # the disk refused it: say what holds and what does not
+            log.error("%s", exc)
+            return error_response(500, str(exc))
         if isinstance(exc, SessionCorrupt):
             log.error("corrupt session data: %s", exc)
             return error_response(500, f"stored session data is damaged: {exc}")

@@ -10,7 +10,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from m2s2hil.drivers.clock import Clock
-from m2s2hil.store.session import SessionCorrupt, SessionNotFound, SessionStore, list_sessions
+from m2s2hil.store.catalogue import list_sessions
+from m2s2hil.store.errors import SessionCorrupt, SessionNotFound
+from m2s2hil.store.records import frame_record
+from m2s2hil.store.session import SessionStore
 
 from .errors import Conflict, UnknownSession
 from .jobqueue import Job
@@ -85,7 +88,7 @@ def frame_page(store: SessionStore, *, offset: int = 0, limit: int = 50) -> tupl
     """One page of the session's frame records in plan order, and how many there are."""
     total = store.journal.query("SELECT COUNT(*) AS n FROM frames")[0]["n"]
     rows = store.journal.query("SELECT * FROM frames ORDER BY idx LIMIT ? OFFSET ?", (limit, offset))
-    return [SessionStore._frame_record(r) for r in rows], int(total)
+    return [frame_record(r) for r in rows], int(total)
 
 
 def frame_bytes(store: SessionStore, session_id: str, n: int,
@@ -95,7 +98,7 @@ def frame_bytes(store: SessionStore, session_id: str, n: int,
     if not rows:
         raise UnknownSession(f"session {session_id} has no frame {n} (frames are numbered by their "
                              "index in the plan; GET /sessions/{id}/frames lists them)")
-    rec = SessionStore._frame_record(rows[0])
+    rec = frame_record(rows[0])
     f = rec.files.get(role)
     if f is None:
         raise UnknownSession(f"frame {n} of session {session_id} has no {role} file")

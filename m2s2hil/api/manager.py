@@ -19,7 +19,9 @@ Conflicts and what they get (the API maps these to HTTP codes):
   crash) queues it again; it captures only what is not stored yet.
 
 After an emergency stop or a failed session the queue is *held*: nothing else starts
-until :meth:`release` (an operator should look at the rig first).
+until :meth:`release` (an operator should look at the rig first). A hold is written to the
+data root before it is acknowledged and read back by :meth:`start`
+(:mod:`m2s2hil.daemon.hold`): a restart, a crash or a power loss does not release it.
 
 Hardware access from request threads: while an engine owns the rig, device state comes
 from the engine's own read-back, never from a second conversation on the same serial
@@ -30,7 +32,7 @@ plan checks in :mod:`.admission`, status snapshots in :mod:`.status`, listings a
 files in :mod:`.listing`, the device view in :mod:`.rigstate`, the emergency stop and the
 safety check in :mod:`.estop`, engine requests in :mod:`.engine_requests`, the data-root
 lock in :mod:`.rootlock`. Locks, always taken in this order: ``_submit_lock`` →
-``_lock`` (= ``_cond``) → ``_hw``.
+``_hold_lock`` → ``_lock`` (= ``_cond``) → ``_hw``.
 """
 
 from __future__ import annotations
@@ -43,13 +45,16 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any, Literal
 
+from m2s2hil.analysis.qc import capture_qc_hook
+from m2s2hil.daemon.hold import HoldFile, HoldNotSaved
 from m2s2hil.engine.build import RigChanged, build_run, check_rig_digest
 from m2s2hil.engine.fault_policy import FaultPolicy
 from m2s2hil.engine.options import EngineOptions
 from m2s2hil.engine.state import EngineEvent, RunState, SessionFinished
 from m2s2hil.plan import Sweep
 from m2s2hil.rig.opened import Rig
-from m2s2hil.store.session import SessionStore, list_sessions
+from m2s2hil.store.catalogue import list_sessions
+from m2s2hil.store.session import SessionStore
 
 from . import estop, listing
 from .admission import check_room, check_sweep
@@ -100,7 +105,11 @@ class SessionManager:
         self._hw = threading.Lock()  # request threads' own device conversations
         self._queue = JobQueue()  # changed under _lock
         self._current: Job | None = None
-        self._held: str | None = None
+        self._held: str | None = None  # why the queue is held (None: not held)
+        self._held_since: float | None = None
+        self._hold_gen = 0  # counts holds set, so a release cannot clear one it did not see
+        self._hold_file = HoldFile(self.root)
+        self._hold_lock = threading.Lock()  # one writer of the hold file at a time
         self._closing = False
         self._thread: threading.Thread | None = None
         self._planned = listing.PlannedCounts()
@@ -130,6 +139,7 @@ class SessionManager:
         self.root.mkdir(parents=True, exist_ok=True)
         if self._lockfile is None:
             self._lockfile = lock_data_root(self.root)
+        self._restore_hold()  # before anything is queued or dispatched
         resumed: list[str] = []
         if resume_interrupted:
             infos = list(reversed(list_sessions(self.root)))  # oldest first
@@ -146,6 +156,21 @@ class SessionManager:
         self._thread = threading.Thread(target=self._dispatch, name="session-dispatcher", daemon=True)
         self._thread.start()
         return resumed
+
+    def _restore_hold(self) -> None:
+        """Take over the hold a previous daemon left on the data root, and say so."""
+        saved = self._hold_file.load()
+        if saved is None:
+            return
+        with self._cond:
+            self._held, self._held_since = saved.reason, saved.since
+            self._hold_gen += 1
+        if saved.damaged:
+            log.error("rig HELD (fail safe): the hold file %s is damaged (%s); no session starts until "
+                      "an operator releases it (POST /queue/release)", self._hold_file.path, saved.damaged)
+        else:
+            log.warning("rig HELD since %s: %s; no session starts until an operator releases it "
+                        "(POST /queue/release)", saved.since_iso, saved.reason)
 
     def request_shutdown(self, reason: str = "shutdown") -> None:
         """Non-blocking first step of a shutdown (e.g. from a signal handler): stop starting
@@ -260,7 +285,8 @@ class SessionManager:
     def _launch(self, job: Job) -> None:
         runs = sum(1 for e in job.store.events() if e.get("kind") == "run_started")
         # The same builder as `capture`: processing, capture-time QC, the fault policy, the rig check.
-        engine = build_run(self.rig, store=job.store, options=self.engine_options, policy=self.policy)
+        engine = build_run(self.rig, store=job.store, options=self.engine_options, policy=self.policy,
+                           qc=capture_qc_hook())  # a fresh hook per run: it keeps the run's scores
         engine.subscribe(self.metrics.observe)
         engine.subscribe(lambda ev, job=job: self._on_event(job, ev))
         with self._cond:
@@ -285,9 +311,15 @@ class SessionManager:
         if isinstance(ev, SessionFinished):
             with self._cond:
                 self._finish(job, ev.state.value)
-                if ev.state is RunState.FAILED and not self._held:
-                    self._held = f"session {job.session_id} failed: {ev.error}"
+                held = ev.state is RunState.FAILED and not self._held
+                if held:  # in the same locked step as _finish: nothing may start in between
+                    self._hold_now(f"session {job.session_id} failed: {ev.error}")
                     log.error("queue held: %s", self._held)
+            if held:
+                try:
+                    self._save_hold()
+                except HoldNotSaved as exc:
+                    log.error("%s", exc)
 
     def _finish(self, job: Job, state: str) -> None:
         """Caller holds the lock."""
@@ -428,27 +460,54 @@ class SessionManager:
 
     def hold(self, reason: str) -> None:
         """Hold the queue: the running session goes on, no queued one starts (e.g. while an
-        operator swaps the mockup) until :meth:`release`."""
+        operator swaps the mockup) until :meth:`release`. Returns once the hold is on disk;
+        :class:`HoldNotSaved` when it could not be written (it holds in this process anyway)."""
         with self._cond:
-            self._held = reason
-            self._cond.notify_all()
+            self._hold_now(reason)
         log.info("queue held: %s", reason)
+        self._save_hold()
 
     def release(self) -> str | None:
-        """Release a held queue; returns the reason it was held."""
-        with self._cond:
-            was, self._held = self._held, None
-            self._cond.notify_all()
+        """Release a held queue; returns the reason it was held. The hold file goes first:
+        when it cannot be removed (:class:`HoldNotSaved`) the queue stays held."""
+        with self._hold_lock:
+            with self._lock:
+                gen, was = self._hold_gen, self._held
+            self._hold_file.clear()
+            with self._cond:
+                if self._hold_gen == gen:  # no new hold (an emergency stop) came in meanwhile
+                    self._held = self._held_since = None
+                    self._cond.notify_all()
         if was:
             log.info("queue released (was held: %s)", was)
         return was
+
+    def _hold_now(self, reason: str) -> None:
+        """Hold in memory at once (nothing is dispatched from here on); caller holds ``_cond``
+        and then calls :meth:`_save_hold`."""
+        self._held, self._held_since = reason, time.time()
+        self._hold_gen += 1
+        self._cond.notify_all()
+
+    def _save_hold(self) -> None:
+        """Make the hold file say what memory says. Serialised, and it reads memory once it
+        has the file: whatever order holds and releases come in, the last writer is right."""
+        with self._hold_lock:
+            with self._lock:
+                reason, since = self._held, self._held_since
+            if reason is None:
+                self._hold_file.clear()
+            else:
+                self._hold_file.save(reason, since)
 
     # ================================================================== emergency stop
     def emergency_stop(self) -> dict:
         """Lamps off and motion stopped now, whatever runs.
 
         Order: hold the queue; switch every lamp off (the relay driver serialises its own
-        I/O, so this is safe beside the engine thread); ask the running session to abort;
+        I/O, so this is safe beside the engine thread); write the hold to the data root (it
+        outlives this daemon; an error doing so is reported, the stop goes on); ask the running
+        session to abort;
         give it ``estop_grace_s`` to reach its own teardown (which stops motion too), then
         stop the axes from this thread anyway (a move is not waited out); once the engine
         has ended, make safe again and read the devices back to confirm (see
@@ -456,12 +515,18 @@ class SessionManager:
         t0 = time.monotonic()
         self.metrics.count_estop()
         with self._cond:
-            self._held = "emergency stop"
+            self._hold_now("emergency stop")
             job = self._current
-            self._cond.notify_all()
         log.warning("EMERGENCY STOP requested%s", f" (session {job.session_id} running)" if job else "")
-        check, errors = estop.stop_rig(self.rig, self._hw, job, grace_s=self.estop_grace_s,
-                                       timeout_s=self.estop_timeout_s)
+        errors = estop.lamps_off(self.rig)
+        try:
+            self._save_hold()
+        except HoldNotSaved as exc:
+            log.error("%s", exc)
+            errors.append(str(exc))
+        check, stop_errors = estop.stop_rig(self.rig, self._hw, job, grace_s=self.estop_grace_s,
+                                            timeout_s=self.estop_timeout_s)
+        errors += stop_errors
         eng = job.engine if job is not None else None
         if job is not None and eng is not None and eng.state is RunState.ABORTED:
             job.finished.wait(5.0)  # its run has given the session's owner lock back

@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from m2s2hil.store.session import SESSION_ID_RE
+from m2s2hil.store.layout import SESSION_ID_RE
 
 SESSION_ID_PATTERN = SESSION_ID_RE.pattern
 

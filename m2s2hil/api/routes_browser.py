@@ -36,7 +36,7 @@ class ExportIn(BaseModel):
             responses={200: {"content": {"text/html": {}}}, **NOT_FOUND, **CONFLICT})
 def session_report(mg: Manager, session_id: SessionId) -> HTMLResponse:
     """The session's QC report and contact sheet (HTML, self-contained), rendered for this request."""
-    from m2s2hil.analysis.report_html import collect_views, render
+    from m2s2hil.analysis.report.session_html import collect_views, render
 
     with mg.reading(session_id) as store:
         views, summary = collect_views(store, thumb_px=160, compute_missing=True)

@@ -7,7 +7,7 @@ import time
 
 from fastapi import APIRouter, Response
 
-from m2s2hil.store.session import software_version
+from m2s2hil.store.folder import software_version
 
 from . import models as m
 from .common import Manager

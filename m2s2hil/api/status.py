@@ -7,7 +7,7 @@ from pathlib import Path
 
 from m2s2hil.drivers.clock import Clock
 from m2s2hil.engine.runner import Engine
-from m2s2hil.store.session import SessionCorrupt
+from m2s2hil.store.errors import SessionCorrupt
 
 from .jobqueue import Job
 from .listing import PlannedCounts, open_store

@@ -10,6 +10,11 @@ be written, one line naming it); 3 paused by the engine (e.g. disk full, also at
 and resumable; 4 aborted; 5 completed with gaps (planned frames skipped, each recorded;
 ``--resume`` retries them); 130 interrupted with Ctrl-C (paused and resumable).
 
+Ctrl-C asks the run to pause at the next safe boundary (the capture in hand finishes). A
+second Ctrl-C stops waiting for one: the lamps go off and motion stops at once (from this
+thread, whatever the run's thread is doing), the run is asked to abort, and the command
+exits 130 after a short grace; what is stored stays stored and ``--resume`` continues.
+
 Dark frames on a real rig (a camera that is not ``sim://``): before the darks the run stops
 at a safe boundary (lamps off, motion stopped) and asks "Put the lens cap on, then press
 Enter", and before the first lit frame "Take the lens cap off, then press Enter"; nothing
@@ -26,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import shlex
 import sys
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,8 +41,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 from rich.table import Table
 
 from m2s2hil.catalog import load_catalog
-from m2s2hil.config import RigConfig, load_rig
+from m2s2hil.config import RigConfig, check_demosaic_method, load_rig
 from m2s2hil.errors import UsageError
+from m2s2hil.sim_config import is_simulated
 
 if TYPE_CHECKING:
     from m2s2hil.engine.runner import Engine
@@ -45,6 +52,7 @@ if TYPE_CHECKING:
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_PAUSED, EXIT_ABORTED, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
 EXIT_GAPS = 5  # completed_with_gaps: the run ended, some planned frames were skipped
+HALT_GRACE_S = 3.0  # after a second Ctrl-C: how long (real time) the run may take to end by itself
 
 app = typer.Typer(help="Capture a session on the rig.", add_completion=False)
 console = Console(stderr=True)
@@ -130,7 +138,7 @@ def _stdin_is_terminal() -> bool:
 
 def _check_operator(config: RigConfig, sweep: Sweep, stored: set[str]) -> None:
     """Refuse a session that needs the lens cap put on by hand when no one can be asked."""
-    if config.camera.port.startswith("sim://") or _stdin_is_terminal():
+    if is_simulated(config.camera.port) or _stdin_is_terminal():
         return  # a simulated camera caps its own lens; a terminal gets the prompt
     pending = [e for e in sweep.expand(config) if e.kind == "dark" and e.event_id not in stored]
     if pending:
@@ -158,6 +166,7 @@ def _run_engine(engine: Engine, *, virtual: bool) -> int:
 
     listener = engine.listen()
     interrupts = 0
+    halted = False
     status = engine.status()
     columns = [
         TextColumn("{task.description}"),
@@ -203,14 +212,17 @@ def _run_engine(engine: Engine, *, virtual: bool) -> int:
                     with contextlib.suppress(UsageError):
                         engine.pause()
                 else:
-                    console.print("[red]aborting[/]")
-                    with contextlib.suppress(UsageError):
-                        engine.abort()
+                    halted = True
+                    break
         listener.close()
-    final = engine.status()
     sid = f"{engine.session_id} --out {shlex.quote(str(engine.store.path.parent))}"  # the resume command
     if engine.rig.config.source_path is not None:
         sid += f" --rig {shlex.quote(str(engine.rig.config.source_path))}"
+    if halted:
+        _halt(engine, thread)
+        console.print(f"stopped; what was stored is kept; resume with: capture --resume {sid}")
+        return EXIT_INTERRUPTED
+    final = engine.status()
     if final.state is RunState.PAUSED:
         if interrupts:
             console.print(f"paused and saved; resume with: capture --resume {sid}")
@@ -231,6 +243,22 @@ def _run_engine(engine: Engine, *, virtual: bool) -> int:
     return EXIT_FAILED
 
 
+def _halt(engine: Engine, thread: threading.Thread) -> None:
+    """A second Ctrl-C: the rig safe now, not at the next boundary; the run asked to abort and
+    given :data:`HALT_GRACE_S` to end by itself (then this process ends without it)."""
+    console.print("[red]Ctrl-C again: stopping now (lamps off, motion stopped)[/]")
+    with contextlib.suppress(UsageError):
+        engine.abort()
+    errors = engine.rig.safe()  # beside the run's thread: a move in hand is not waited out
+    thread.join(HALT_GRACE_S)
+    errors += engine.rig.safe()  # again: the run's thread may have been between two commands
+    if errors:
+        last = "; ".join(f"{type(e).__name__}: {e}" for e in errors[-3:])
+        console.print(f"[red]rig NOT confirmed safe: {last} - check it[/]")
+    else:
+        console.print("rig safe: lamps off, motion stopped")
+
+
 def _summary(s: EngineStatus, engine: Engine) -> None:
     t = Table(title=f"session {s.session_id}: {s.state.value}")
     t.add_column("item")
@@ -242,7 +270,7 @@ def _summary(s: EngineStatus, engine: Engine) -> None:
     if s.efficiency is not None:
         t.add_row("efficiency vs lower bound", f"{s.efficiency:.3f}")
     t.add_row("folder", str(engine.store.path))
-    safe = getattr(engine, "rig_safe", None)  # the rig's outcome, apart from the data's
+    safe = engine.rig_safe  # the rig's outcome, apart from the data's
     if safe is not None:
         t.add_row("rig at the end", "safe (lamps off, motion stopped)" if safe else "NOT SAFE: check it")
     if s.error:
@@ -272,7 +300,7 @@ def capture(
         False, "--allow-rig-change", help="with --resume: continue although the rig file changed"),
 ) -> None:
     """Capture one satellite build under the chosen lighting conditions."""
-    from m2s2hil.store.session import default_data_root
+    from m2s2hil.store.catalogue import default_data_root
 
     if mode not in ("stop-and-go", "continuous"):
         raise UsageError(f"--mode must be stop-and-go or continuous, not {mode!r}")
@@ -289,13 +317,14 @@ def capture(
             method=method, exposure=exposure, azimuth_step=azimuth_step,
             frames_per_pose=frames_per_pose, config=config,
         )
-        _check_method(sweep.processing)
+        check_demosaic_method(sweep.processing)
         if dry_run:
             _print_plan(sweep, config)
             raise typer.Exit(EXIT_OK)
     elif dry_run or sat or build or light:
         raise UsageError("--resume takes the plan from the session: drop --sat/--build/--light/--dry-run")
 
+    from m2s2hil.analysis.qc import capture_qc_hook
     from m2s2hil.engine.build import build_run, open_capture_rig
 
     if resume is not None:  # a missing or damaged session is refused before any device moves
@@ -312,22 +341,16 @@ def capture(
     opened = open_capture_rig(config, realtime=realtime, source=str(rig) if rig is not None else None)
     try:
         if resume is not None:
-            engine = build_run(opened, root, resume=resume, allow_rig_change=allow_rig_change)
+            engine = build_run(opened, root, resume=resume, allow_rig_change=allow_rig_change,
+                               qc=capture_qc_hook())
             n_done = len(engine.store.completed_event_ids())
             console.print(f"resuming {resume}: {n_done} events already stored")
         else:
-            engine = build_run(opened, root, sweep=sweep)
+            engine = build_run(opened, root, sweep=sweep, qc=capture_qc_hook())
             console.print(f"session {engine.session_id} in {engine.store.path}")
         code = _run_engine(engine, virtual=opened.simulated and not realtime)  # open_rig's clock rule
-        engine.store.close()  # ended or parked: the session's owner lock goes with the command
+        engine.store.close()  # ended, parked or halted: the session's owner lock goes with the command
     finally:
         opened.safe()
         opened.close()
     raise typer.Exit(code)
-
-
-def _check_method(name: str) -> None:
-    from m2s2hil.processing.demosaic import METHODS
-
-    if name not in METHODS:
-        raise UsageError(f"unknown processing method {name!r}; known: {', '.join(METHODS)}")

@@ -14,7 +14,7 @@ def compact_cmd(
 ) -> None:
     """Compress a session's raw frames and darks losslessly and drop the cubes that are
     recomputed bit for bit when read; atomic, verified before and after."""
+    from m2s2hil.store.catalogue import default_data_root
     from m2s2hil.store.compact import compact_session
-    from m2s2hil.store.session import default_data_root
 
     typer.echo(compact_session(root or default_data_root(), session).line())

@@ -52,15 +52,15 @@ def evaluate_cmd(
     limit: int | None = typer.Option(None, "--limit", min=1, help="evaluate only the first N images"),
 ) -> None:
     """Evaluate segmenters on TARGET: Table-2-shaped CSV/Markdown, charts, per-image scores."""
-    from m2s2hil.analysis.evaluate import EvalOptions, collect_jobs, evaluate_jobs, write_evaluation
+    from m2s2hil.analysis.evaluation.evaluate import evaluate_jobs
+    from m2s2hil.analysis.evaluation.jobs import collect_jobs
+    from m2s2hil.analysis.evaluation.options import EvalOptions
+    from m2s2hil.analysis.report.evaluation_files import write_evaluation
 
     if reprocess is not None:
-        from m2s2hil.processing.demosaic import METHODS
+        from m2s2hil.config import check_demosaic_method
 
-        if reprocess not in METHODS:
-            raise UsageError(
-                f"--reprocess: unknown demosaicing method {reprocess!r}; known: {', '.join(METHODS)}"
-            )
+        check_demosaic_method(reprocess, lambda problem: UsageError(f"--reprocess: {problem}"))
     seg_opts: dict = {}
     if checkpoint is not None:
         seg_opts["checkpoint"] = str(checkpoint)
@@ -114,7 +114,7 @@ def report_cmd(
     ),
 ) -> None:
     """Write SESSION's HTML report: QC distribution, QC per pose and a contact sheet of previews."""
-    from m2s2hil.analysis.report_html import write_session_report
+    from m2s2hil.analysis.report.session_html import write_session_report
     from m2s2hil.commands.export import open_session
 
     with open_session(session, root) as store:

@@ -13,8 +13,10 @@ from pathlib import Path
 import typer
 
 from m2s2hil.errors import UsageError
+from m2s2hil.store.catalogue import default_data_root
 from m2s2hil.store.export import LAYOUTS, export_session
-from m2s2hil.store.session import JOURNAL, SessionStore, default_data_root
+from m2s2hil.store.layout import JOURNAL
+from m2s2hil.store.session import SessionStore
 
 app = typer.Typer(
     help="Export a session as the published M2S2 layout, a Hugging Face dataset or a Zarr store.",

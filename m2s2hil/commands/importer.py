@@ -10,8 +10,8 @@ from pathlib import Path
 
 import typer
 
+from m2s2hil.store.catalogue import default_data_root
 from m2s2hil.store.importer import import_dataset
-from m2s2hil.store.session import default_data_root
 
 app = typer.Typer(
     help="Import released M2S2 data (or camera raws) into sessions.",

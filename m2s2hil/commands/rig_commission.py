@@ -19,7 +19,9 @@ from rich.markup import escape
 from rich.table import Table
 
 from m2s2hil.config import RigConfig, load_rig
-from m2s2hil.rig.probe import EXIT_MISMATCH, ProbeReport, probe_rig
+from m2s2hil.rig.devices.findings import ProbeReport
+from m2s2hil.rig.probe import EXIT_MISMATCH, probe_rig
+from m2s2hil.sim_config import is_simulated
 
 console = Console()
 
@@ -29,12 +31,12 @@ def _simulators(config: RigConfig) -> tuple[Any, dict[str, Any]]:
     from m2s2hil.drivers.clock import SYSTEM_CLOCK
 
     ports = [d.port for d in config.devices.values()] + [config.camera.port]
-    if not any(p.startswith("sim://") for p in ports):
+    if not any(is_simulated(p) for p in ports):
         return SYSTEM_CLOCK, {}
     from m2s2hil.rig.factory import build_simulators
 
     clock: Any = SYSTEM_CLOCK
-    if all(p.startswith("sim://") for p in ports):
+    if all(is_simulated(p) for p in ports):
         from m2s2hil.simulators.clock import VirtualClock
 
         clock = VirtualClock()

@@ -30,7 +30,7 @@ def list_cmd(
     root: Path | None = typer.Option(None, "--root", help="data root (default: $M2S2HIL_DATA or ./sessions)"),
 ) -> None:
     """Every session under the data root, newest first."""
-    from m2s2hil.store.session import default_data_root, list_sessions
+    from m2s2hil.store.catalogue import default_data_root, list_sessions
 
     root = root or default_data_root()
     infos = list_sessions(root)
@@ -56,8 +56,8 @@ def repair_cmd(
 ) -> None:
     """Rebuild a damaged journal from the frame files' metadata and the manifest (the old
     journal is kept beside it; damaged files go to quarantine/ and a resume recaptures them)."""
+    from m2s2hil.store.catalogue import default_data_root
     from m2s2hil.store.repair import repair_session
-    from m2s2hil.store.session import default_data_root
 
     report = repair_session(root or default_data_root(), session, force=force)
     typer.echo(report.line())
@@ -72,7 +72,8 @@ def show_cmd(
 ) -> None:
     """A session's summary (and, with --verify, its integrity check)."""
     from m2s2hil.analysis.qc import qc_summary
-    from m2s2hil.store.session import SessionStore, default_data_root
+    from m2s2hil.store.catalogue import default_data_root
+    from m2s2hil.store.session import SessionStore
 
     store = SessionStore.open(root or default_data_root(), session)
     try:

@@ -1,22 +1,23 @@
 """The one way to put a capture run together, for ``capture``, the daemon and the benchmarks.
 
     rig = open_capture_rig(config, realtime=False)           # one line naming the device, no traceback
-    engine = build_run(rig, root, sweep=sweep)                # a new session
-    engine = build_run(rig, root, resume="20261124T…")        # continue one from disk
+    engine = build_run(rig, root, sweep=sweep, qc=capture_qc_hook())   # a new session, scored
+    engine = build_run(rig, root, resume="20261124T…")        # continue one from disk (no QC)
     engine = build_run(rig, root, store=queued_store)         # a session the daemon queued
 
 :func:`build_run` creates or reopens the session store, checks that a resumed session was
 captured with this rig (:func:`check_rig_digest`, the one place that check lives), and
-wires the processing (``options.processor_factory``), the capture-time QC
-(:func:`default_qc`: every frame gets a score in ``meta["qc"]`` and the run summary the
-distribution) and the fault policy into an :class:`~m2s2hil.engine.runner.Engine`. The
-scene is mounted once per run, by the steps' set-up. Front ends only translate their
-arguments into these calls and render progress.
+wires the processing (``options.processor_factory``), the capture-time QC hook the front
+end passes (a :data:`~m2s2hil.engine.frames.QcHook`, fresh per run: every frame gets a score
+in ``meta["qc"]``, and a hook with ``summary()`` gives the run summary its distribution; the
+front ends pass ``m2s2hil.analysis.qc.capture_qc_hook()``: the engine does not import the
+analysis) and the fault policy into an :class:`~m2s2hil.engine.runner.Engine`. The scene is
+mounted once per run, by the steps' set-up. Front ends only translate their arguments into
+these calls and render progress.
 """
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -30,8 +31,6 @@ from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.plan import Sweep
 from m2s2hil.rig.opened import Rig
 from m2s2hil.store.session import SessionStore
-
-log = logging.getLogger(__name__)
 
 
 class RigUnavailable(M2S2Error):
@@ -72,17 +71,6 @@ def check_rig_digest(store: SessionStore, config: RigConfig) -> None:
         )
 
 
-def default_qc() -> QcHook | None:
-    """The capture-time QC hook (a fresh one per run: it keeps the run's score distribution);
-    None when the analysis extra is not installed."""
-    try:
-        from m2s2hil.analysis.qc import capture_qc_hook
-    except ImportError:
-        log.warning("capture-time QC is off: m2s2hil.analysis is not importable")
-        return None
-    return capture_qc_hook()
-
-
 def build_run(
     rig: Rig,
     root: str | Path | None = None,
@@ -94,7 +82,6 @@ def build_run(
     options: EngineOptions | None = None,
     policy: FaultPolicy | None = None,
     qc: QcHook | None = None,
-    capture_qc: bool = True,
     on_event: Callable[[EngineEvent], None] | None = None,
     allow_rig_change: bool = False,
 ) -> Engine:
@@ -103,12 +90,11 @@ def build_run(
     or ``store`` (a session already open, e.g. queued by the daemon; its rig is checked like a
     resumed session's).
 
-    ``qc`` overrides the capture-time QC hook; ``capture_qc=False`` turns it off. A store this
-    function opened is closed again if the engine cannot be built.
+    ``qc`` is the capture-time QC hook (None: no QC). A store this function opened is closed
+    again if the engine cannot be built.
     """
     if sum(x is not None for x in (sweep, resume, store)) != 1:
         raise UsageError("build_run needs exactly one of sweep, resume or store")
-    hook = qc if qc is not None else (default_qc() if capture_qc else None)
     opened_here = store is None
     if store is None:
         if root is None:
@@ -121,7 +107,7 @@ def build_run(
     try:
         if sweep is None and not allow_rig_change:
             check_rig_digest(store, rig.config)
-        return Engine(rig, store, sweep, options=options, policy=policy, qc=hook, on_event=on_event)
+        return Engine(rig, store, sweep, options=options, policy=policy, qc=qc, on_event=on_event)
     except BaseException:
         if opened_here:
             store.close()

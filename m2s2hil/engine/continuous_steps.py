@@ -20,7 +20,7 @@ azimuth step).
 from __future__ import annotations
 
 import math
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,6 +31,7 @@ from m2s2hil.drivers.errors import FrameIncomplete
 from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.engine.exposure_search import ExposureResult
 from m2s2hil.engine.marks import Match, PassReport, blur_estimate, run_pass
+from m2s2hil.engine.messages import FrameCaptured, StepGen
 from m2s2hil.engine.steps import CaptureKit, SharedSteps
 from m2s2hil.errors import UsageError
 from m2s2hil.plan import CaptureEvent, ContinuousEstimate, Sweep, estimate_continuous
@@ -91,11 +92,13 @@ class ContinuousSteps(SharedSteps):
     def unit_key(self, event: CaptureEvent) -> Hashable | None:
         return event.pass_index if event.kind == "frame" else None
 
-    def execute(self, unit: Sequence[CaptureEvent], attempt: int) -> None:
+    def execute(self, unit: Sequence[CaptureEvent], attempt: int) -> StepGen[None]:
         if unit[0].kind == "dark":
-            self.capture_dark(unit[0])
-        else:
-            self._capture_pass(unit, attempt)
+            yield from self.capture_dark(unit[0])
+            return
+        yield from self.lit_unit()
+        while not (yield from self._capture_pass(unit, attempt)):
+            pass  # the lens cap went on and off for a dark meanwhile: lamps and tilt again
 
     def lower_bound_s(self) -> float:
         return self.settings.estimate(self.kit.sweep, self.rig.config).lower_bound_s
@@ -107,8 +110,10 @@ class ContinuousSteps(SharedSteps):
             out["passes"] = self.passes
         return out
 
-    def _capture_pass(self, todo: Sequence[CaptureEvent], attempt: int) -> None:
-        """One pass over the marks of ``todo`` (events of one pass); FrameIncomplete if marks were missed."""
+    def _capture_pass(self, todo: Sequence[CaptureEvent], attempt: int) -> StepGen[bool]:
+        """One pass over the marks of ``todo`` (events of one pass); FrameIncomplete if marks
+        were missed. False (before the stream) when a dark under the operator's cap
+        interrupted it."""
         kit, settings = self.kit, self.settings
         rotation = self.rig.rotation
         assert rotation is not None  # checked in setup()
@@ -117,10 +122,13 @@ class ContinuousSteps(SharedSteps):
         sweep = kit.sweep
         first = todo[0]
         assert first.tilt_deg is not None and first.lighting is not None
-        kit.set_condition(first)
+        cycles = kit.darks.lens_cycles
+        yield from kit.set_condition(first)
         moved: list[AxisRole] = ["tilt"] if self.ops.move("tilt", first.tilt_deg) else []
         exposure, auto = self._exposure_for_pass(first)
-        dark = kit.darks.for_setting(exposure, first.gain)
+        dark = yield from kit.darks.for_setting(exposure, first.gain)
+        if kit.darks.lens_cycles != cycles:
+            return False
         speed = settings.omega(sweep, config, first.lighting, exposure)
         kit.camera.configure(exposure, first.gain)
         blur = blur_estimate(speed, exposure, settings.radius_px)
@@ -129,7 +137,7 @@ class ContinuousSteps(SharedSteps):
             assert ev.azimuth_deg is not None
             marks.setdefault(ev.azimuth_deg, []).append(ev)
 
-        def on_match(match: Match, frame_info: list[dict[str, Any]]) -> None:
+        def on_match(match: Match) -> Iterator[FrameCaptured]:
             evs = sorted(match.key, key=lambda e: e.frame)
             for ev, frame, extra in zip(evs, match.frames, match.extras, strict=False):
                 meta = kit.frames.meta(ev, frame, exposure, dark, extra["clock_s"], extra["wall"], attempt)
@@ -143,17 +151,17 @@ class ContinuousSteps(SharedSteps):
                 if auto is not None:
                     meta["auto_exposure"] = auto.to_dict()
                 self.blur_deg.append(blur.deg)
-                kit.hooks.submit(ev, frame.data, meta, dark, extra.get("truth"))
+                yield FrameCaptured(ev, frame.data, meta, dark, extra.get("truth"))
 
         def on_frame(frame: Frame) -> dict[str, Any]:
             return {"clock_s": clock.monotonic(), "wall": clock.wall(), "truth": kit.frames.truth()}
 
         self.ops.wait_ready(clock.monotonic() + self.ops.settle_s(moved, first.settle_s))
-        report: PassReport = run_pass(
+        report: PassReport = yield from run_pass(
             self.rig, self.ops, rotation, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
             exposure_s=exposure, k=sweep.frames_per_pose,
             window_deg=settings.match_window(sweep, config, speed, exposure),
-            on_match=on_match, should_stop=kit.hooks.should_stop, on_frame=on_frame,
+            on_match=on_match, on_frame=on_frame,
             frame_timeout_s=exposure + kit.camera.snap_timeout_s,
         )
         info = {"pass_index": first.pass_index, "lighting": first.lighting, "elevation": first.elevation,
@@ -161,7 +169,7 @@ class ContinuousSteps(SharedSteps):
         self.passes.append(info)
         kit.store.record_event("continuous_pass", info)
         if report.stopped_early:
-            return  # pause/abort: the runner's boundary handles it; what is left stays pending
+            return True  # pause/abort: the runner's boundary handles it; what is left stays pending
         missing = [ev for _, evs in report.missing for ev in evs]
         if missing:
             raise FrameIncomplete(
@@ -170,6 +178,7 @@ class ContinuousSteps(SharedSteps):
                 f"{report.dropped} frame(s) dropped in the pass",
                 device=self.rig.camera.name, command="continuous pass",
             )
+        return True
 
     def _exposure_for_pass(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
         exposure = self.kit.exposure

@@ -11,10 +11,12 @@
   the run parks at a safe boundary (lamps off, motion stopped) with the pause reason
   :data:`LENS_CAP_REASON` until the operator confirms the cap is on (``Engine.confirm_lens``);
   planned darks (taken first, back to back) share one capping, and before the next lit unit
-  the run parks again with :data:`LENS_UNCAP_REASON`. A dark needed in the middle of a lit
-  unit (auto exposure, a temperature retake) is capped and uncapped on its own and the unit
-  is then captured again (:class:`LensCycled`): its lamps and pose were given up while parked.
-  A simulated camera's lens is capped by ``rig.cap_lens`` with no one asked.
+  the run parks again with :data:`LENS_UNCAP_REASON`. The darks ask for it by yielding
+  :class:`~m2s2hil.engine.messages.LensRequest` (the runner parks). A dark needed in the
+  middle of a lit unit (auto exposure, a temperature retake) is capped and uncapped on its
+  own (counted in :attr:`SessionDarks.lens_cycles`), and the steps then capture the unit from
+  its start: its lamps and pose were given up while parked. A simulated camera's lens is
+  capped by ``rig.cap_lens`` with no one asked.
 - temperature: when the sensor has drifted beyond
   ``processing.dark_temperature_tolerance_c`` from a dark's temperature, the dark is
   retaken under a new id (``<planned id>/t<n>``) and the planned id is aliased to it, so
@@ -25,15 +27,16 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from m2s2hil.engine.exposure import CameraControl
+from m2s2hil.engine.messages import DarkStored, LensRequest, StepGen
 from m2s2hil.plan import CaptureEvent, Sweep, dark_event, dark_event_id
 from m2s2hil.rig.opened import Rig
 from m2s2hil.rig.operations import RigOps
-from m2s2hil.store.session import DarkRecord, SessionStore
+from m2s2hil.store.records import DarkRecord
+from m2s2hil.store.session import SessionStore
 
 log = logging.getLogger(__name__)
 
@@ -45,11 +48,6 @@ LENS_UNCAP_REASON = "lens_cap: take the lens cap off"
 def lens_reason(capped: bool) -> str:
     """The pause reason while the run waits for the operator to cap (True) or uncap the lens."""
     return LENS_CAP_REASON if capped else LENS_UNCAP_REASON
-
-
-class LensCycled(Exception):
-    """A dark was taken in the middle of a lit unit on a real rig: the run parked for the
-    operator twice (lamps off, pose forgotten), so the runner captures the unit again."""
 
 
 @dataclass(frozen=True)
@@ -67,26 +65,27 @@ class Dark:
 class SessionDarks:
     """Darks by id, with the alias from a planned dark id to the id of its retake.
 
-    ``on_captured(event)`` is called after each dark this object captures and stores (the
-    engine counts a planned one as done). ``operator_lens(capped)`` returns once the operator
-    has confirmed the lens cap on (True) or off (the engine parks until then); it is used
-    when ``rig.lens_needs_operator``, else the rig caps its own (simulated) lens.
+    The capturing methods are steps (generators of
+    :data:`~m2s2hil.engine.messages.StepMessage`, their return value the dark): each dark
+    stored yields :class:`~m2s2hil.engine.messages.DarkStored`; on a real rig
+    (``rig.lens_needs_operator``) the cap is asked for with
+    :class:`~m2s2hil.engine.messages.LensRequest`, else the rig caps its own (simulated) lens.
     """
 
-    def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, camera: CameraControl,
-                 on_captured: Callable[[CaptureEvent], None],
-                 operator_lens: Callable[[bool], None] | None = None) -> None:
+    def __init__(self, rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps,
+                 camera: CameraControl) -> None:
         self.rig = rig
         self.store = store
         self.sweep = sweep
         self.ops = ops
         self.camera = camera
-        self.on_captured = on_captured
-        self.operator_lens = operator_lens
         self._darks: dict[str, Dark] = {}
         self._alias: dict[str, str] = {}  # planned dark id -> id of a retaken dark
+        #: Darks taken in the middle of a lit unit under the operator's cap: each parked the
+        #: run twice (lamps off, pose forgotten), so the steps start that unit again.
+        self.lens_cycles = 0
 
-    def for_setting(self, exposure_s: float, gain: float) -> Dark | None:
+    def for_setting(self, exposure_s: float, gain: float) -> StepGen[Dark | None]:
         """The dark for frames at this setting (None when the sweep takes no darks)."""
         if self.sweep.dark.frames <= 0:
             return None
@@ -97,7 +96,7 @@ class SessionDarks:
         rec = self.store.dark_for(exposure_s, gain)
         if rec is not None:
             return self.load(rec)
-        return self.capture(dark_event(exposure_s, gain, self.sweep.dark.frames))
+        return (yield from self.capture(dark_event(exposure_s, gain, self.sweep.dark.frames)))
 
     def load(self, rec: DarkRecord) -> Dark:
         """A dark the store holds (as the store rebuilds it for computed cubes, provenance and all)."""
@@ -109,7 +108,7 @@ class SessionDarks:
         self._alias[dark_event_id(rec.exposure_s, rec.gain)] = rec.dark_id
         return dark
 
-    def capture(self, ev: CaptureEvent) -> Dark:
+    def capture(self, ev: CaptureEvent) -> StepGen[Dark]:
         """Take, build and store the dark of ``ev`` (or load it if the session has it already)."""
         from m2s2hil.processing.dark import build_master_dark
 
@@ -117,12 +116,12 @@ class SessionDarks:
             rec = next(d for d in self.store.darks() if d.dark_id == ev.event_id)
             return self.load(rec)
         cam = self.rig.camera
-        operator_lens = self.operator_lens if self.rig.lens_needs_operator else None
-        if operator_lens is not None:
-            # Real rig: parks until the operator confirms the cap. It stays on after the
-            # dark (the next planned dark needs it too); the runner asks for it off before
-            # the next lit unit, or a failed dark's retry finds it still on.
-            operator_lens(True)
+        operator = self.rig.lens_needs_operator
+        if operator:
+            # Real rig: the run parks until the operator confirms the cap. It stays on after
+            # the dark (the next planned dark needs it too); the next lit unit asks for it
+            # off, or a failed dark's retry finds it still on.
+            yield LensRequest(True)
         else:
             self.rig.cap_lens(True)
             self.ops.lens_capped = True
@@ -130,7 +129,7 @@ class SessionDarks:
             self.camera.configure(ev.exposure_s, ev.gain)
             frames = [self.camera.snap(ev.exposure_s) for _ in range(ev.n_frames)]
         finally:
-            if operator_lens is None:  # a simulated cap comes off after the dark
+            if not operator:  # a simulated cap comes off after the dark
                 self.rig.cap_lens(False)
                 self.ops.lens_capped = False
         master = build_master_dark(
@@ -145,16 +144,16 @@ class SessionDarks:
         base = dark_event_id(ev.exposure_s, ev.gain)
         if ev.event_id != base:
             self._alias[base] = ev.event_id
-        self.on_captured(ev)
-        if ev.index < 0 and operator_lens is not None:
+        yield DarkStored(ev)
+        if ev.index < 0 and operator:
             # Not a planned dark: taken in the middle of a lit unit, whose lamps and pose the
-            # parking gave up. Cap off, then the unit again (it finds this dark stored).
-            operator_lens(False)
-            raise LensCycled(f"dark {ev.event_id} taken under the operator's lens cap: the unit again")
+            # parking gave up. Cap off; the steps capture the unit again (it finds this dark).
+            yield LensRequest(False)
+            self.lens_cycles += 1
         return dark
 
     def check_temperature(self, dark: Dark | None, exposure_s: float, gain: float,
-                          temperature_c: float) -> Dark | None:
+                          temperature_c: float) -> StepGen[Dark | None]:
         """``dark``, or a retake of it when the sensor is now at a different temperature."""
         if dark is None:
             return None
@@ -167,4 +166,4 @@ class SessionDarks:
             update={"event_id": f"{base}/t{n}"})
         log.info("sensor at %.1f °C, dark %s at %.1f °C: retaking", temperature_c, dark.dark_id,
                  dark.temperature_c)
-        return self.capture(ev)
+        return (yield from self.capture(ev))

@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import collections
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from m2s2hil.engine.messages import Checkpoint, StepGen, StepMessage
 
 if TYPE_CHECKING:
     from m2s2hil.drivers.interfaces import ContinuousRotation
@@ -251,18 +253,18 @@ def run_pass(
     exposure_s: float,
     k: int,
     window_deg: float,
-    on_match: Callable[[Match, list[dict]], None],
-    should_stop: Callable[[], bool] = lambda: False,
+    on_match: Callable[[Match], Iterable[StepMessage]],
     on_frame: Callable[[Any], dict] | None = None,
     frame_timeout_s: float = 2.0,
     poll_interval_s: float = 0.05,
-) -> PassReport:
-    """One continuous pass over ``marks`` (commanded turntable angles, in any order).
+) -> StepGen[PassReport]:
+    """One continuous pass over ``marks`` (commanded turntable angles, in any order): a step.
 
     Moves the turntable (verified) to the first mark minus the run-up, starts the
     stream and the rotation (``rotation``: the turntable's, as the rig recorded it),
-    matches frames to marks and calls ``on_match`` for each, and always stops rotation
-    and stream before returning or raising.
+    matches frames to marks and yields what ``on_match`` makes of each; before every frame
+    it yields a :class:`~m2s2hil.engine.messages.Checkpoint` and stops early when the reply
+    says so. Rotation and stream are always stopped before it returns, raises or is closed.
     """
     clock = rig.clock
     tt, cam = rig.turntable, rig.camera
@@ -303,20 +305,20 @@ def run_pass(
 
     missing: list[tuple[float, Any]] = []
 
-    def release(ms: list[Match]) -> None:
+    def release(ms: list[Match]) -> Iterator[StepMessage]:
         for m in ms:
             if not m.complete:  # passed without (enough) frames near it: a gap in the stream
                 missing.append((m.mark_deg, m.key))
                 continue
             errors.append(abs(m.error_deg))
-            on_match(m, [])
+            yield from on_match(m)
 
     cam.start_stream(fps)
     try:
         rotation.rotate(speed_dps, direction=direction)
         poll()
         while not matcher.done():
-            if should_stop():
+            if (yield Checkpoint()):
                 stopped = True
                 break
             if clock.monotonic() - last_poll >= poll_interval_s:
@@ -337,7 +339,7 @@ def run_pass(
             except ValueError:
                 extra["speed_dps"] = None
             extra["angle_deg"] = angle
-            release(matcher.offer(angle, frame, extra))
+            yield from release(matcher.offer(angle, frame, extra))
             if direction * (angle - end) > 0:
                 break
             if clock.monotonic() > give_up:
@@ -353,7 +355,7 @@ def run_pass(
     if stopped:
         matcher.drop_candidates()
     else:
-        release(matcher.flush())
+        yield from release(matcher.flush())
     if stop_errors:
         raise stop_errors[0]
     try:

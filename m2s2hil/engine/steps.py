@@ -8,42 +8,27 @@ That is a :class:`CaptureSteps` implementation's job, in the shape of pymmcore-p
 - :class:`~m2s2hil.engine.stop_and_go.StopAndGoSteps`: move, settle, snap, one event at a time;
 - :class:`~m2s2hil.engine.continuous_steps.ContinuousSteps`: one turntable pass per unit.
 
-Both capture the planned darks the same way (:class:`SharedSteps`). A step raises on a fault
-(the runner applies the policy) and hands every frame to the runner with ``hooks.submit``.
+Both capture the planned darks the same way (:class:`SharedSteps`). ``execute`` is a
+generator of :mod:`m2s2hil.engine.messages` (frames, darks stored, conditions reached, lens
+requests, checkpoints): the steps never call into the runner. A step raises on a fault (the
+runner applies the policy).
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-import numpy as np
-
-from m2s2hil.engine.darks import Dark, SessionDarks
+from m2s2hil.engine.darks import SessionDarks
 from m2s2hil.engine.exposure import CameraControl, ExposureMeter
 from m2s2hil.engine.frames import FrameStages
+from m2s2hil.engine.messages import ConditionReached, LensRequest, StepGen
 from m2s2hil.plan import CaptureEvent, Sweep
 from m2s2hil.rig.opened import Rig
 from m2s2hil.rig.operations import RigOps
 from m2s2hil.store.session import SessionStore
-
-Submit = Callable[[CaptureEvent, np.ndarray, dict[str, Any], Dark | None, Any], None]
-
-
-@dataclass(frozen=True)
-class RunHooks:
-    """What the runner lends the steps."""
-
-    #: Hand a captured frame (event, raw data, metadata, its dark, simulator truth) to the pipeline.
-    submit: Submit
-    #: A planned dark is stored (the runner counts it done).
-    dark_stored: Callable[[CaptureEvent], None]
-    #: The lighting condition and elevation in front of the camera changed (for the status).
-    condition: Callable[[CaptureEvent], None]
-    #: A pause or abort was asked for: a long step (a continuous pass) stops early.
-    should_stop: Callable[[], bool]
 
 
 @dataclass
@@ -58,12 +43,11 @@ class CaptureKit:
     exposure: ExposureMeter
     darks: SessionDarks
     frames: FrameStages
-    hooks: RunHooks
 
-    def set_condition(self, ev: CaptureEvent) -> None:
+    def set_condition(self, ev: CaptureEvent) -> StepGen[None]:
         """The lamps of the event's lighting condition on (switched only when they change)."""
         assert ev.lighting is not None
-        self.hooks.condition(ev)
+        yield ConditionReached(ev)
         self.ops.set_lamps(frozenset(self.rig.config.lamp_channels(ev.lighting)))
 
 
@@ -77,9 +61,10 @@ class CaptureSteps(Protocol):
     def unit_key(self, event: CaptureEvent) -> Hashable | None:
         """Events with the same non-None key are captured together as one unit."""
 
-    def execute(self, unit: Sequence[CaptureEvent], attempt: int) -> None:
-        """Capture ``unit`` (pending events, in plan order); ``attempt`` is 1 + failed tries.
-        Raises on a fault; a unit cut short by ``should_stop`` leaves its rest pending."""
+    def execute(self, unit: Sequence[CaptureEvent], attempt: int) -> StepGen[None]:
+        """Capture ``unit`` (pending events, in plan order), yielding what it captures and
+        needs; ``attempt`` is 1 + failed tries. Raises on a fault; a unit stopped at a
+        :class:`~m2s2hil.engine.messages.Checkpoint` leaves its rest pending."""
 
     def recover(self) -> None:
         """After a fault: stop any acquisition and command every camera setting again."""
@@ -109,8 +94,12 @@ class SharedSteps:
         self.kit.exposure.restore()
         self.rig.mount(self.kit.sweep.satellite, self.kit.sweep.build)
 
-    def capture_dark(self, ev: CaptureEvent) -> None:
-        self.kit.darks.capture(ev)
+    def capture_dark(self, ev: CaptureEvent) -> StepGen[None]:
+        yield from self.kit.darks.capture(ev)
+
+    def lit_unit(self) -> StepGen[None]:
+        """Before a lit unit: the lens cap off (on a real rig, as the operator confirms)."""
+        yield LensRequest(False)
 
     def recover(self) -> None:
         self.kit.camera.forget()

@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
+from m2s2hil.atomic import write_bytes_atomic
 from m2s2hil.processing import kernels
 from m2s2hil.processing.errors import CalibrationError
 from m2s2hil.processing.mosaic import MosaicLayout
-from m2s2hil.store.atomic import write_bytes_atomic
 
 FORMAT = "m2s2hil-calibration/1"
 MAX_CONDITION = 1e3  # a crosstalk matrix worse than this amplifies noise beyond use

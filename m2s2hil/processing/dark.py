@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 import tifffile
 
+from m2s2hil.atomic import write_bytes_atomic
 from m2s2hil.processing.errors import (
     DarkLibraryError,
     DarkMismatchError,
@@ -34,7 +35,6 @@ from m2s2hil.processing.errors import (
     FrameShapeError,
     ProcessingError,
 )
-from m2s2hil.store.atomic import write_bytes_atomic
 
 Reduce = Literal["mean", "median"]
 SIDECAR_FORMAT = "m2s2hil-dark/1"

@@ -13,10 +13,13 @@ from typing import ClassVar
 import numpy as np
 from numba import get_num_threads, parallel_chunksize
 
+from m2s2hil.config import DEMOSAIC_METHODS, check_demosaic_method
 from m2s2hil.processing.errors import FrameShapeError, LayoutError, UnknownMethodError
 from m2s2hil.processing.mosaic import MosaicLayout
 
-METHODS: tuple[str, ...] = ("superpixel", "nearest", "wb", "ppid")
+#: The method names, known below processing (the rig file checks them without importing numba);
+#: :func:`_registry` has a class for each (tests/test_config.py).
+METHODS: tuple[str, ...] = DEMOSAIC_METHODS
 
 INPUT_DTYPES = (np.dtype(np.uint16), np.dtype(np.float32))
 
@@ -99,9 +102,8 @@ def _registry() -> dict[str, type[Demosaicer]]:
 
 
 def check_method(name: str) -> str:
-    if name not in METHODS:
-        raise UnknownMethodError(f"unknown demosaicing method {name!r}; known: {', '.join(METHODS)}")
-    return name
+    """``name`` if it is a demosaicing method, else :class:`UnknownMethodError`."""
+    return check_demosaic_method(name, UnknownMethodError)
 
 
 def get_demosaicer(name: str, layout, shape: tuple[int, int]) -> Demosaicer:

@@ -20,7 +20,6 @@ import contextlib
 import errno
 import logging
 import os
-import re
 from collections.abc import Iterator
 from typing import Literal
 
@@ -111,44 +110,39 @@ def _serial_cause(exc: BaseException) -> Cause | None:
     return None
 
 
-_GRBL_REPLY = re.compile(rb"Grbl |\[VER:|^(ok|error:\d+|ALARM:\d+)\r?$", re.M)
-_ZABER_REPLY = re.compile(rb"^@\d\d \d ", re.M)
-
-
 def identify_port(url: str, baudrate: int, *, timeout_s: float = 0.5) -> str | None:
-    """What answers on ``url``: ``"GRBL"``, ``"Zaber ASCII"``, ``"ASCII relay"`` or None.
+    """What answers on ``url``: the title of a device kind (``"GRBL"``, ``"Zaber ASCII"``,
+    ``"ASCII relay"``) or None.
 
-    Sends what each protocol answers and the others ignore or reject: a Zaber status poll
-    (``/`` + newline, answered ``@nn a OK ...`` by every Zaber device), a GRBL soft reset
-    (0x18, answered with the ``Grbl 1.1h`` banner) and a Numato-style ``ver`` (the board
-    echoes it and prints its ``>`` prompt). Never raises: None when nothing is recognised.
+    Sends each kind's probe (its registry entry's :class:`~m2s2hil.rig.devices.kind.Signature`,
+    chosen so that it answers and the others ignore or reject it: a Zaber status poll, a GRBL
+    soft reset, a Numato-style ``ver``) and holds each reply against every kind's signature.
+    Never raises: None when nothing is recognised.
     """
     import serial
 
+    # The registry's entries open their devices inside opening() (below): imported here, when a
+    # port is to be identified, so that this module stays below them.
+    from m2s2hil.rig.devices import KINDS
+
+    signed = [(kind.title, kind.signature) for kind in KINDS.values() if kind.signature is not None]
     try:
         port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s)
     except (serial.SerialException, OSError, ValueError):
         return None
     try:
-        for probe in (b"\n/\n", b"\x18", b"ver\r"):
+        for title, signature in signed:
             with contextlib.suppress(serial.SerialException, OSError):
                 port.reset_input_buffer()
-                port.write(probe)
+                port.write(signature.probe)
                 got = port.read(256)
-                if _ZABER_REPLY.search(got):
-                    return "Zaber ASCII"
-                if _GRBL_REPLY.search(got):
-                    return "GRBL"
-                if probe == b"ver\r" and b">" in got:
-                    return "ASCII relay"
+                for other, sig in signed:
+                    if (other == title or not sig.own_probe_only) and sig.reply.search(got):
+                        return other
         return None
     finally:
         with contextlib.suppress(serial.SerialException, OSError):
             port.close()
-
-
-_PROTOCOL_NAMES = {"grbl": "GRBL", "zaber": "Zaber ASCII", "ascii-relay": "ASCII relay",
-                   "modbus-rtu": "Modbus RTU relay"}
 
 
 def explain(exc: BaseException, *, device: str, port: str, protocol: str, baudrate: int = 115200,
@@ -181,8 +175,10 @@ def explain(exc: BaseException, *, device: str, port: str, protocol: str, baudra
     if isinstance(exc, CommandRejected) and int(getattr(exc, "code", 0) or 0) == 5 and protocol == "grbl":
         return RigOpenError(device, port, "homing disabled", detail)
     if isinstance(exc, DeviceTimeout | ProtocolError):
+        from m2s2hil.rig.devices import KINDS  # as in identify_port
+
         found = identify_port(port, baudrate) if identify else None
-        expected = _PROTOCOL_NAMES.get(protocol, protocol)
+        expected = KINDS[protocol].title if protocol in KINDS else protocol
         if found is not None and found != expected:
             return RigOpenError(device, port, "wrong device",
                                 f"a {found} device answers where the rig file expects {expected}")

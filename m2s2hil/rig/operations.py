@@ -12,6 +12,9 @@ so the next capture re-commands everything and re-verifies.
 - Safe state (:meth:`RigOps.make_safe`): lamps off and both axes stopped, tried up to
   ``attempts`` times with a short back-off, every step each time, even when a step
   raises; the errors are returned, never raised, so teardown keeps the original error.
+  A stop waits as a move does (:mod:`m2s2hil.drivers.motion_watch`): until the axis is at
+  rest, however long a slow rig brakes, failing only when it stops changing without
+  coming to rest (GRBL then resets the controller once: drivers/grbl.py).
 """
 
 from __future__ import annotations

@@ -43,6 +43,7 @@ from m2s2hil.config import AxisConfig, RigConfig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.rig.open_errors import RigOpenError, opening
+from m2s2hil.sim_config import is_simulated
 
 if TYPE_CHECKING:
     from m2s2hil.rig.opened import Rig
@@ -101,7 +102,7 @@ class RigState:
         return cls(rig=str(doc.get("rig", "")), origins=origins)
 
     def save(self, path: Path) -> None:
-        from m2s2hil.store.atomic import write_text_atomic
+        from m2s2hil.atomic import write_text_atomic
 
         doc = {"format": STATE_FORMAT, "rig": self.rig,
                "origins": {role: asdict(o) for role, o in sorted(self.origins.items())}}
@@ -115,10 +116,6 @@ def state_path(config: RigConfig) -> Path | None:
     """``my_rig.state.json`` next to ``my_rig.toml``; None for a rig that has no file."""
     src = config.source_path
     return None if src is None else src.with_name(src.stem + ".state.json")
-
-
-def _in_process(port: str) -> bool:
-    return port.startswith("sim://")
 
 
 # -- GRBL ------------------------------------------------------------------------------------
@@ -160,7 +157,7 @@ def set_origin(config: RigConfig, role: str, *, clock: Clock = SYSTEM_CLOCK,
     ax = _axis(config, role)
     dev = config.devices[ax.device]
     path = path or state_path(config)
-    if _in_process(dev.port):
+    if is_simulated(dev.port):
         raise UsageError(f"{role} is simulated in-process ({dev.port}): it starts at its origin every time "
                          "the rig opens, there is nothing to record")
     if path is None:
@@ -252,7 +249,7 @@ def set_origin_open(rig: Rig, role: str) -> AxisOrigin:
     dev = config.devices[ax.device]
     if ax.homing != "none":
         raise UsageError(f"{role} homes on its switches (homing = \"switches\"): home it instead")
-    if _in_process(dev.port):
+    if is_simulated(dev.port):
         raise UsageError(f"{role} is simulated in-process ({dev.port}): it starts at its origin every time "
                          "the rig opens, there is nothing to record")
     path = state_path(config)
@@ -322,7 +319,7 @@ def establish_origins(config: RigConfig, controllers: Mapping[str, Any], axes: M
                                        f"axis {ax.axis} reports fault {reply.warning}")
                 offset = 0.0
                 identity = _zaber_identity(ctl)
-        if not _in_process(dev.port):
+        if not is_simulated(dev.port):
             if state is None:
                 state = RigState.load(path)
             rec = state.origins.get(role)

@@ -16,12 +16,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from m2s2hil.atomic import write_files_atomic
 from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.errors import UsageError
 from m2s2hil.processing.demosaic import get_demosaicer
 from m2s2hil.processing.display import false_colour
 from m2s2hil.rig.opened import AXIS_ROLES, Rig
-from m2s2hil.store.atomic import write_files_atomic
 from m2s2hil.store.frame_files import dumps, encode_png, encode_raw
 
 SNAPSHOT_ID = re.compile(r"^[0-9]{8}T[0-9]{6}-[0-9a-f]{6}$")

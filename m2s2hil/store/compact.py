@@ -29,12 +29,11 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from m2s2hil.atomic import fsync_dir, write_files_atomic
 from m2s2hil.errors import M2S2Error
-from m2s2hil.store.atomic import fsync_dir, write_files_atomic
 from m2s2hil.store.cubes import CubeComputer
 from m2s2hil.store.frame_files import (
     EncodedJSON,
@@ -45,7 +44,8 @@ from m2s2hil.store.frame_files import (
     encode_raw,
 )
 from m2s2hil.store.frame_meta import cube_recipe
-from m2s2hil.store.session import FileRecord, FrameRecord, SessionStore
+from m2s2hil.store.records import DarkRecord, FileRecord, FrameRecord
+from m2s2hil.store.session import SessionStore
 
 
 class CompactError(M2S2Error):
@@ -119,9 +119,8 @@ def _plan_frame(store: SessionStore, fr: FrameRecord, plan: _Plan, computer: Cub
     cube = None
     if has_cube:
         cube, _ = decode_tiff(store.read_file(fr.files["cube"]))
-        hidden = _HiddenCube(store)
         try:
-            recomputed = computer.read(hidden, fr.event_id)
+            recomputed = computer.compute(store, fr)
             keep_cube = recomputed.tobytes() != np.asarray(cube, dtype=np.float32).tobytes()
         except M2S2Error:
             keep_cube = True
@@ -156,21 +155,7 @@ def _plan_frame(store: SessionStore, fr: FrameRecord, plan: _Plan, computer: Cub
     report.frames += 1
 
 
-class _HiddenCube:
-    """The store seen without its stored cubes, so the computer recomputes them."""
-
-    def __init__(self, store: SessionStore) -> None:
-        self._s = store
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._s, name)
-
-    def frame(self, event_id: str) -> FrameRecord:
-        fr = self._s.frame(event_id)
-        return fr.model_copy(update={"files": {k: v for k, v in fr.files.items() if k != "cube"}})
-
-
-def _plan_dark(store: SessionStore, d: Any, plan: _Plan, report: CompactReport) -> None:
+def _plan_dark(store: SessionStore, d: DarkRecord, plan: _Plan, report: CompactReport) -> None:
     data = store.read_file(d.files["master"])
     arr, _ = decode_tiff(data)
     if _is_compressed(data):

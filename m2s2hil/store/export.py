@@ -45,11 +45,12 @@ from typing import Any, Literal
 
 import numpy as np
 
+from m2s2hil.atomic import write_bytes_atomic, write_text_atomic
 from m2s2hil.catalog import load_catalog
 from m2s2hil.errors import UsageError
-from m2s2hil.store.atomic import write_bytes_atomic, write_text_atomic
 from m2s2hil.store.frame_files import encode_png
-from m2s2hil.store.session import FrameRecord, SessionStore
+from m2s2hil.store.records import FrameRecord
+from m2s2hil.store.session import SessionStore
 
 Layout = Literal["m2s2", "hf", "zarr"]
 LAYOUTS = ("m2s2", "hf", "zarr")

@@ -31,13 +31,17 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from m2s2hil.atomic import fsync_dir, write_text_atomic
 from m2s2hil.errors import UsageError
-from m2s2hil.store.atomic import fsync_dir, write_text_atomic
 from m2s2hil.store.frame_files import encode_png
+
+if TYPE_CHECKING:
+    from m2s2hil.store.records import FrameRecord
+    from m2s2hil.store.session import SessionStore
 
 CARD = """---
 configs:
@@ -93,7 +97,8 @@ def _value(v: Any) -> Any:
     return None if v == "" else v
 
 
-def export_hf(store: Any, out: Path, frames: list, rows: list[dict], *, overwrite: bool) -> list[Path]:
+def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: list[dict], *,
+              overwrite: bool) -> list[Path]:
     """Write ``data/train-<session>.parquet`` and the card (see the module docstring)."""
     try:
         import datasets

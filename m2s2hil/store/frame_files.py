@@ -32,6 +32,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import re
 from typing import Any
 
 import cv2
@@ -237,6 +238,26 @@ def preview_file(name: str, rgb: np.ndarray, *, compress: bool) -> tuple[str, by
     if compress:
         return f"frames/{name}.preview.jpg", encode_jpeg(rgb)
     return f"frames/{name}.preview.png", encode_png(rgb)
+
+
+#: File roles of a frame that ``extra`` files cannot take.
+RESERVED_ROLES = ("raw", "cube", "preview")
+
+
+def extra_file(name: str, role: str, arr: np.ndarray, event_id: str) -> tuple[str, bytes]:
+    """A frame's extra 2-D array as a file (relative path, bytes): integer arrays that fit 8
+    or 16 bits as PNG, others as TIFF."""
+    if role in RESERVED_ROLES or not re.fullmatch(r"[a-z][a-z0-9_]{0,31}", role):
+        raise UsageError(f"invalid extra file role {role!r}: lower-case letters, digits, '_'; "
+                         f"not {', '.join(RESERVED_ROLES)}")
+    if not isinstance(arr, np.ndarray) or arr.ndim != 2:
+        raise InvalidImage(f"extra {role!r} must be a 2-D array")
+    if arr.dtype.kind in "ui" or arr.dtype == np.bool_:
+        lo, hi = (int(arr.min()), int(arr.max())) if arr.size else (0, 0)
+        for dt in (np.uint8, np.uint16):
+            if lo >= 0 and hi <= np.iinfo(dt).max:
+                return f"frames/{name}.{role}.png", encode_png(arr.astype(dt))
+    return f"frames/{name}.{role}.tiff", encode_tiff(arr, {"role": role, "event_id": event_id})
 
 
 def image_media_type(path: str) -> str:

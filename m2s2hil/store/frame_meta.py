@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from m2s2hil.errors import UsageError
 from m2s2hil.plan import CaptureEvent
 from m2s2hil.store.frame_files import EncodedJSON, dumps
+
+if TYPE_CHECKING:
+    from m2s2hil.store.session import SessionStore
 
 #: Keys the store sets; a caller's metadata must not hold them.
 STORE_KEYS = frozenset({
@@ -49,8 +52,8 @@ def cube_recipe(method: str, dark_id: str | None, *, calibrated: bool, stored: b
             "stored": stored}
 
 
-def build_meta(store: Any, event: CaptureEvent, meta: Mapping[str, Any] | None, *, cube_stored: bool | None,
-               **defaults: Any) -> tuple[dict[str, Any], EncodedJSON]:
+def build_meta(store: SessionStore, event: CaptureEvent, meta: Mapping[str, Any] | None, *,
+               cube_stored: bool | None, **defaults: Any) -> tuple[dict[str, Any], EncodedJSON]:
     """(metadata as read back, its JSON text) of a frame (``cube_stored`` given) or a dark
     (``cube_stored=None``) of ``store``. The text is what the TIFF and the journal hold."""
     given = dict(meta or {})

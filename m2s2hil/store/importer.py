@@ -42,13 +42,13 @@ from typing import Any
 
 import numpy as np
 
+from m2s2hil.atomic import fsync_dir
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.errors import CatalogError, UsageError
 from m2s2hil.plan import DarkPolicy, Sweep, dark_event, frame_event_id
 from m2s2hil.store import import_meta
-from m2s2hil.store.atomic import fsync_dir
 from m2s2hil.store.frame_files import InvalidImage, decode_image, decode_tiff
 from m2s2hil.store.frame_meta import STORE_KEYS
 from m2s2hil.store.import_meta import Sidecar, SidecarError, bit_depth, camera_fields, read_sidecars

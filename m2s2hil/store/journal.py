@@ -33,8 +33,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from m2s2hil.atomic import DiskFull
 from m2s2hil.errors import M2S2Error
-from m2s2hil.store.atomic import DiskFull
 from m2s2hil.store.frame_files import dumps
 
 SCHEMA_VERSION = 1

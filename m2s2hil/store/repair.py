@@ -29,14 +29,16 @@ from typing import Any
 
 import tifffile
 
+from m2s2hil.atomic import TMP_MARK, fsync_dir, remove_temp_files
 from m2s2hil.config import parse_rig
 from m2s2hil.errors import ConfigError, UsageError
 from m2s2hil.plan import PlanError, parse_sweep
-from m2s2hil.store.atomic import TMP_MARK, fsync_dir, remove_temp_files
+from m2s2hil.store.errors import SessionCorrupt, SessionNotFound
+from m2s2hil.store.folder import software_version
 from m2s2hil.store.frame_files import dumps
 from m2s2hil.store.journal import Journal, JournalError
+from m2s2hil.store.layout import JOURNAL, check_session_id
 from m2s2hil.store.owner_lock import OwnerLock
-from m2s2hil.store.session import JOURNAL, SessionCorrupt, SessionNotFound, _check_id, software_version
 
 _ROLE_RE = re.compile(r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?:tiff|png|jpg)$")
 
@@ -89,7 +91,7 @@ def repair_session(root: str | Path, session_id: str, *, force: bool = False) ->
     """Rebuild ``<root>/<session_id>/journal.sqlite`` (see the module docstring). A sound
     journal is left alone (its event log is worth more) unless ``force``."""
     root = Path(root)
-    path = root / _check_id(session_id)
+    path = root / check_session_id(session_id)
     if not path.is_dir():
         raise SessionNotFound(root, session_id)
     lock = OwnerLock.acquire(path)

@@ -25,12 +25,17 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from m2s2hil.errors import UsageError
+
+if TYPE_CHECKING:
+    from m2s2hil.store.records import FrameRecord
+    from m2s2hil.store.session import SessionStore
 
 REF = "#zarr:"
 
@@ -50,7 +55,7 @@ def _libs() -> tuple[Any, Any, Any]:
     return xr, da, zarr
 
 
-def _frames_dataset(store: Any, xr: Any, da: Any, dark_keys: dict[str, str]) -> Any:
+def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, str]) -> Any:
     from dask import delayed
 
     from m2s2hil.catalog import load_catalog
@@ -74,17 +79,17 @@ def _frames_dataset(store: Any, xr: Any, da: Any, dark_keys: dict[str, str]) -> 
     labels = da.stack([da.from_delayed(delayed(labels_of)(fr.event_id), shape, np.uint8) for fr in frames])
     cat = load_catalog()
 
-    def col(fn: Any) -> np.ndarray:
+    def col(fn: Callable[[FrameRecord], Any]) -> np.ndarray:
         values = [fn(fr) for fr in frames]
         # strings as variable-length: fixed-width ones could not be appended to by a longer name
         return np.array(values, dtype=object) if values and isinstance(values[0], str) else np.array(values)
 
-    def pose(fr: Any, key: str) -> float:
+    def pose(fr: FrameRecord, key: str) -> float:
         p = fr.meta.get("pose") or {}
         v = p.get(key)
         return float(v) if isinstance(v, int | float) else float("nan")
 
-    def num(fr: Any, key: str) -> float:
+    def num(fr: FrameRecord, key: str) -> float:
         v = fr.meta.get(key)
         return float(v) if isinstance(v, int | float) else float("nan")
 
@@ -118,7 +123,7 @@ def _frames_dataset(store: Any, xr: Any, da: Any, dark_keys: dict[str, str]) -> 
     return ds
 
 
-def export_zarr(store: Any, out: str | Path) -> int:
+def export_zarr(store: SessionStore, out: str | Path) -> int:
     """Write ``store``'s frames (and darks) into the Zarr store ``out`` (created, or appended
     to); returns the number of frames written."""
     xr, da, _ = _libs()
@@ -162,12 +167,8 @@ def export_zarr(store: Any, out: str | Path) -> int:
 
 
 # ------------------------------------------------------------------------------ reading
-def is_zarr_store(path: str | Path) -> bool:
-    return (Path(path) / "zarr.json").is_file()
-
-
 def zarr_frames(path: str | Path) -> list[dict[str, Any]]:
-    """The fields of one evaluation job (``analysis.jobs.FrameJob``) per frame of a Zarr
+    """The fields of one evaluation job (``analysis.evaluation.jobs.FrameJob``) per frame of a Zarr
     export; ``raw``, ``dark`` and ``labels`` are references for :func:`read_ref`."""
     xr, _, _ = _libs()
     from m2s2hil.catalog import load_catalog
@@ -202,10 +203,6 @@ def zarr_frames(path: str | Path) -> list[dict[str, Any]]:
 
 def _plain(v: Any) -> Any:
     return v.item() if isinstance(v, np.generic) else v
-
-
-def is_ref(path: str) -> bool:
-    return REF in path
 
 
 def read_ref(path: str) -> bytes:

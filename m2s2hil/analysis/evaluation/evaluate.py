@@ -1,0 +1,251 @@
+"""Evaluating segmenters over sessions and exported datasets (the paper's section 3).
+
+Pipeline: ``collect_jobs(target)`` turns a session, a data root full of sessions, or an
+exported dataset (``HIL/<Satellite>/b<N>/e<N>/<light>_<k>.png``) into one ``FrameJob``
+per image (paths and metadata only, no pixels); ``evaluate_jobs`` runs ``evaluate_job``
+on each, on Dask (``evaluation.parallel``); ``report.evaluation_files.write_evaluation`` writes the
+Table-2-shaped report (``table2``), the per-image CSV, the charts (``report.charts``) and a
+``summary.json``.
+
+Per image (``evaluate_job``):
+
+- cube: the stored cube (sha256 checked against the journal), or the raw mosaic run
+  through ``processing.FrameProcessor`` (the session's dark and method, or ``reprocess=``);
+  exported datasets are processed from their PNG mosaic (``HIL16`` when present), without
+  dark subtraction;
+- ground truth: the simulator's label map the engine stored with the frame
+  (``extra`` role ``truth_labels``, sensor resolution), reduced to the cube's grid by the
+  majority label of each n×n cell (``labels_to_cube``); images without it get mTC only;
+- every segmenter of ``EvalOptions.segmenters`` runs once (timed: ``time_s`` is the
+  segmentation only), its clusters are matched to classes (oracle Hungarian matching,
+  ``score_clusters``, label set = ground-truth classes, 0/0 = 0) and scored (macro P, R,
+  Dice, micro-IoU);
+- mTC (K = 8 seeded shifts, ``analysis.metrics.mtc``) of the multispectral segmenter (or every
+  segmenter, ``mtc="all"``). ``mtc_mode="labels"`` (default): the segmenter's full label
+  map, each shifted prediction aligned to the base one (Hungarian, 0 ↔ 0).
+  ``mtc_mode="binary"``: the paper's HIL setting, bands 5, 9, 10 segmented one by one and
+  fused as foreground/background (RGB segmenters: their prediction's foreground). With a
+  pixel-wise segmenter (``spectral``) binary mTC is exactly 1.0 (a shift is undone
+  exactly), which is why it is not the default.
+
+Modules of ``m2s2hil.analysis.evaluation``: ``jobs`` (finding the images: ``FrameJob``,
+``collect_jobs``), ``loading`` (cubes, raws and labels from the store, reprocessing,
+``labels_to_cube``), ``options`` (``EvalOptions``, segmenter names, mTC predictors),
+``aggregates`` (per-image rows, speed against accuracy), ``table2`` (the paper's table),
+``parallel`` (Dask). This module is the driver; the report folder is written by
+``m2s2hil.analysis.report.evaluation_files.write_evaluation``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from m2s2hil.analysis.bands import PAPER_BANDS, select_bands_pca
+from m2s2hil.analysis.evaluation.jobs import EvaluationError, FrameJob
+from m2s2hil.analysis.evaluation.loading import load_cube, load_truth
+from m2s2hil.analysis.evaluation.options import EvalOptions, cached_segmenter, check_segmenters, mtc_predictor
+from m2s2hil.analysis.evaluation.parallel import dask_client, describe, map_ordered
+from m2s2hil.analysis.metrics.mtc import mtc
+from m2s2hil.analysis.metrics.scores import score_clusters
+from m2s2hil.analysis.segmenters.spectral import foreground_mask
+
+log = logging.getLogger(__name__)
+PCA_SAMPLE_PIXELS = 200  # foreground spectra per image pooled for PCA band selection (8 kB per image)
+
+
+# ----------------------------------------------------------------------------- one image
+def _error(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _segmenter_result(
+    name: str, cube: np.ndarray, gt: np.ndarray | None, job: FrameJob, options: EvalOptions, bands_nm: Any
+) -> dict[str, Any]:
+    """One segmenter on one image. Each step (segmentation, scores, mTC) fails on its own: its error
+    is recorded under ``errors`` and the other steps' values are kept."""
+    res: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    try:
+        seg = cached_segmenter(name, options, bands_nm)
+        t1 = time.perf_counter()
+        pred = seg.segment(cube)
+        res["time_s"] = time.perf_counter() - t1
+        res["n_segments"] = len(np.unique(pred[pred > 0]))
+    except Exception as exc:  # reported per segmenter; the image's other segmenters still run
+        log.warning("%s on %s failed: %s", name, job.image_id, exc)
+        return {"errors": {"segment": _error(exc)}}
+    if gt is not None:
+        try:
+            s, _ = score_clusters(gt, pred)
+            res.update(precision=s.macro_precision, recall=s.macro_recall, dice=s.macro_dice,
+                       micro_iou=s.micro_iou)
+        except Exception as exc:
+            errors["scores"] = _error(exc)
+    if options.mtc_for == "all" or (options.mtc_for == "multi" and name == options.multi):
+        try:
+            predict, align = mtc_predictor(
+                seg, name, options.mtc_mode, cube.shape[0], n_classes=job.n_classes, bands=options.mtc_bands
+            )
+            t2 = time.perf_counter()
+            r = mtc(predict, cube, align=align)
+            res.update(mtc=r.score, mtc_time_s=time.perf_counter() - t2)
+        except Exception as exc:
+            log.warning("mTC of %s on %s failed: %s", name, job.image_id, exc)
+            errors["mtc"] = _error(exc)
+    if errors:
+        res["errors"] = errors
+    return res
+
+
+def pca_sample(cube: np.ndarray, n: int = PCA_SAMPLE_PIXELS, seed: int = 0) -> np.ndarray:
+    """Up to ``n`` foreground spectra ``(n, bands)`` float32 (Otsu foreground, seeded draw), pooled
+    over the evaluated images for PCA band selection."""
+    fg, _ = foreground_mask(cube)
+    spectra = cube[:, fg].T
+    if spectra.shape[0] > n:
+        spectra = spectra[np.random.default_rng(seed).choice(spectra.shape[0], n, replace=False)]
+    return np.ascontiguousarray(spectra, dtype=np.float32)
+
+
+def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
+    """Scores of every segmenter on one image; errors are returned in the record, not raised.
+
+    ``error`` is set only when the image itself cannot be read; a segmenter or metric that fails
+    records its error in ``results[name]["errors"]`` and keeps the other values.
+    """
+    rec: dict[str, Any] = {
+        "image_id": job.image_id,
+        "source": job.source,
+        "satellite": job.satellite,
+        "build": job.build,
+        "classes": job.n_classes,
+        "elevation": job.elevation,
+        "lighting": job.lighting,
+        "azimuth_deg": job.azimuth_deg,
+        "has_truth": False,
+        "error": None,
+        "results": {},
+    }
+    try:
+        t0 = time.perf_counter()
+        cube = load_cube(job, options.reprocess)
+        gt = load_truth(job, cube.shape[1:])
+        rec["load_s"] = time.perf_counter() - t0
+        rec["has_truth"] = gt is not None
+        rec["cube_shape"] = list(cube.shape)
+    except Exception as exc:  # one bad image must not end a 16,000-image run; it is reported
+        log.warning("evaluation of %s failed: %s", job.image_id, exc)
+        rec["error"] = _error(exc)
+        return rec
+    bands_nm = job.camera.get("bands_nm") or ()
+    for name in options.segmenters:
+        rec["results"][name] = _segmenter_result(name, cube, gt, job, options, bands_nm)
+    try:
+        rec["pca_sample"] = pca_sample(cube)
+    except Exception as exc:
+        rec["pca_error"] = _error(exc)
+    return rec
+
+
+# ----------------------------------------------------------------------------- running
+@dataclass
+class EvaluationResult:
+    records: list[dict[str, Any]]
+    options: EvalOptions
+    sources: list[str]
+    elapsed_s: float
+    compute: dict[str, Any]
+    bands: dict[str, Any] | None = None  # ``band_report``: PCA's bands beside the paper's and mTC's
+
+    @property
+    def metric_errors(self) -> list[dict[str, Any]]:
+        """Segmenter or metric failures on images that were otherwise evaluated."""
+        out = []
+        for r in self.records:
+            for name, res in r.get("results", {}).items():
+                for step, err in res.get("errors", {}).items():
+                    out.append({"image_id": r["image_id"], "segmenter": name, "step": step, "error": err})
+        return out
+
+    @property
+    def has_truth(self) -> bool:
+        return any(r["has_truth"] for r in self.records)
+
+    @property
+    def errors(self) -> list[dict[str, Any]]:
+        return [r for r in self.records if r.get("error")]
+
+
+def band_report(records: list[dict[str, Any]], options: EvalOptions, bands_nm: Sequence[float] = ()) -> dict:
+    """PCA band selection on the evaluated images (their pooled foreground spectra, taken out of the
+    records), beside the paper's bands 5, 9, 10 and the bands the binary mTC used."""
+    samples = [r.pop("pca_sample") for r in records if r.get("pca_sample") is not None]
+    report: dict[str, Any] = {
+        "paper_bands": list(PAPER_BANDS),
+        "mtc_bands": list(options.mtc_bands),
+        "mtc_used": "paper" if tuple(options.mtc_bands) == PAPER_BANDS else "given",
+        "mtc_binary": options.mtc_mode == "binary" and options.mtc_for != "none",
+        "pca_bands": None,
+        "pca_images": len(samples),
+    }
+    samples = [s for s in samples if s.shape[0] > 0]
+    try:
+        pixels = np.concatenate(samples)[:, :, np.newaxis] if samples else None
+        if pixels is None:
+            raise ValueError("no foreground pixels in the evaluated images")
+        sel = select_bands_pca(np.moveaxis(pixels, 0, 1))  # (bands, n, 1): one "cube" of pooled pixels
+    except Exception as exc:  # reported, never fatal: PCA is a side result
+        report["pca_error"] = _error(exc)
+        return report
+    if tuple(options.mtc_bands) == sel.bands_1based:
+        report["mtc_used"] = "pca"
+    report.update(
+        pca_bands=sorted(sel.bands_1based),
+        pca_pick_order=list(sel.bands_1based),
+        pca_explained_variance=[float(v) for v in sel.explained_variance_ratio],
+        pca_pixels=sel.n_pixels,
+        pca_standardized=sel.standardize,
+        loadings_table=sel.loadings_table(list(bands_nm) if len(bands_nm) == sel.loadings.shape[1] else None),
+    )
+    return report
+
+
+def evaluate_jobs(
+    jobs: Sequence[FrameJob],
+    options: EvalOptions,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    processes: bool = True,
+    sources: Sequence[str] = (),
+    progress: Callable[[int, int], None] | None = None,
+) -> EvaluationResult:
+    """Run ``evaluate_job`` over ``jobs`` on Dask (``workers=0``: in this process)."""
+    if not jobs:
+        raise EvaluationError("nothing to evaluate: no images found")
+    check_segmenters(options)
+    total = len(jobs)
+
+    def on_result(done: int, _rec: Any) -> None:
+        if progress is not None:
+            progress(done, total)
+
+    t0 = time.perf_counter()
+    if workers == 0 and not scheduler:
+        records = map_ordered(evaluate_job, list(jobs), client=None, on_result=on_result, options=options)
+        compute = describe(None)
+    else:
+        with dask_client(scheduler, workers=workers, processes=processes) as client:
+            compute = describe(client)
+            records = map_ordered(
+                evaluate_job, list(jobs), client=client, on_result=on_result, options=options
+            )
+    bands_nm: Sequence[float] = next((j.camera["bands_nm"] for j in jobs if j.camera.get("bands_nm")), ())
+    bands = band_report(records, options, bands_nm)
+    return EvaluationResult(records, options, list(sources), time.perf_counter() - t0, compute, bands)

@@ -1,0 +1,409 @@
+"""The default segmenter: foreground + Gaussian mixture on shading-invariant spectra, fitted on the
+interior of material regions.
+
+Steps for a cube ``(bands, H, W)`` (defaults since issue 15; docs/evaluation.md, "How many
+materials", has the comparison that chose them):
+
+1. Band energy e = ‖x‖₂ per pixel. Foreground on log(e + 10⁻³·max e) (the log because shading is
+   multiplicative: in the linear domain a half in shadow forms its own histogram mode).
+   ``foreground="backdrop"`` (default): above the lower of the Otsu threshold and the backdrop's
+   median + 6 robust SDs (``foreground_mask``) — with a bright object Otsu's cut can fall above a
+   dark material and hand it to the background. ``"otsu"``: Otsu alone (the old rule). A cube
+   with constant energy has no foreground and comes back all background.
+2. Features: each spectrum divided by its norm (unit length: spectral angle, shape not
+   brightness) or ``features="log-chromaticity"``; plus, with ``brightness_weight`` w > 0
+   (default 0.1), w·log e as one more coordinate — an albedo cue: achromatic materials (silver,
+   dark grey, white) have nearly the same spectral shape and differ mostly in brightness, while
+   shading on a face changes log e far less than the albedo ratio between them.
+3. Fit pixels (``fit_pixels="homogeneous"``): foreground pixels inside the eroded foreground whose
+   four neighbours lie within ``homogeneity_deg`` (3°) of them; with ``noise_scaled`` the angle
+   grows as √(median e / e) for pixels darker than the median (shot noise), so a dark material
+   still has fit pixels. Rim pixels (object + backdrop) and material boundaries (two spectra; the
+   super-pixel grid also samples the bands at slightly different places) stay out of the fit:
+   fitted on every pixel (``"all"``, the old default), BIC spent components on those blends.
+4. Count: ``sklearn.mixture.GaussianMixture`` with 1..``max_materials`` (12) components on at most
+   ``sample_size`` fit pixels (``np.random.default_rng(seed)``); the lowest ``criterion`` wins:
+   ``"bic"`` (default) or ``"icl"`` (BIC + twice the classification entropy). The sweep stops
+   once it has not improved for ``bic_patience`` counts. ``"bayes"``: one
+   ``BayesianGaussianMixture`` with a sparse Dirichlet weight prior (``weight_prior``), surplus
+   components end with ~0 weight. ``n_materials`` fixes the count (``for_build``: from the
+   catalog, named ``spectral-catalog-k``). A single-band cube: the foreground is one material.
+5. Clean-up: components whose unit mean spectra (brightness coordinate left out) lie within
+   ``merge_angle_deg`` (1.5°) merge (transitively); groups under ``min_material_fraction``
+   (0.2 %) of the weight are dropped; every foreground pixel goes to the group with the largest
+   summed posterior. Groups are numbered 1..n by decreasing pixel count (ties by first
+   component index), so ids are reproducible.
+6. Optional (``smooth=True``): superpixels (``skimage.segmentation.slic``, SLICO, on the
+   features, foreground only) and a majority vote of the cluster ids inside each.
+
+BLAS threads: the whole analysis runs inside ``threadpoolctl.threadpool_limits(blas_threads)``
+(1 by default). The GMM's linear algebra is on 10×10 matrices, where multi-threaded BLAS
+is pure overhead; on a busy 2-core machine it made the BIC sweep ten times slower
+(1.65 s vs 0.17 s for six fits on 20k pixels). ``None`` leaves the library default.
+
+Known limits: the brightness coordinate separates dark grey from silver, but silver and cold
+white (close in both shape and brightness) can still merge; materials that cover only a few
+pixels have no homogeneous interior and are found only if their spectra stand out. The
+defaults were chosen on the simulator's frames (docs/evaluation.md), not on real captures.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy import ndimage
+from scipy.special import xlogy
+from skimage.filters import threshold_otsu
+from skimage.segmentation import slic
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.mixture import BayesianGaussianMixture, GaussianMixture
+from threadpoolctl import threadpool_limits
+
+from m2s2hil.analysis.arrays import as_cube
+from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.catalog import load_catalog
+
+CovarianceType = Literal["full", "tied", "diag", "spherical"]
+Criterion = Literal["bic", "icl", "bayes"]
+FitPixels = Literal["homogeneous", "all"]
+Features = Literal["unit", "log-chromaticity"]
+
+
+@dataclass(frozen=True)
+class SpectralSegmentation:
+    """Labels and the diagnostics of one ``SpectralSegmenter.analyse`` call."""
+
+    labels: np.ndarray  # int32 (H, W), 0 = background
+    n_materials: int
+    threshold: float  # foreground threshold as band energy (NaN if energy was constant)
+    bic: dict[int, float] = field(default_factory=dict)  # components -> BIC on the sample
+    n_foreground: int = 0
+
+
+ForegroundRule = Literal["backdrop", "otsu"]
+BACKDROP_MADS = 6.0
+
+
+def foreground_mask(cube: np.ndarray, rule: ForegroundRule = "otsu") -> tuple[np.ndarray, float]:
+    """Foreground on the log band energy of a ``(bands, H, W)`` cube.
+
+    ``"otsu"``: above the Otsu threshold. ``"backdrop"``: above the lower of the Otsu threshold and
+    the backdrop's level + ``BACKDROP_MADS`` robust SDs (median and 1.4826·MAD of the pixels below
+    the Otsu threshold): with a bright object Otsu's cut can fall above a dark material (dark grey
+    filament) and hand it to the background; the backdrop's own spread bounds what noise can reach.
+    Returns the mask and the threshold expressed as band energy (NaN for a constant cube).
+    """
+    energy = np.sqrt(np.einsum("bhw,bhw->hw", cube, cube))
+    top = float(energy.max())
+    if top == float(energy.min()):
+        return np.zeros(energy.shape, dtype=bool), float("nan")
+    eps = 1e-3 * top
+    log_e = np.log(energy + eps)
+    t = float(threshold_otsu(log_e))
+    if rule == "backdrop":
+        below = log_e[log_e <= t]
+        med = float(np.median(below))
+        mad = 1.4826 * float(np.median(np.abs(below - med)))
+        t = min(t, med + BACKDROP_MADS * mad)
+    return log_e > t, float(np.exp(t) - eps)
+
+
+MIN_FIT_PIXELS = 50
+
+
+def features_of(cube: np.ndarray, features: Features = "unit") -> np.ndarray:
+    """Per-pixel shading-invariant features ``(bands, H, W)``: unit-length spectra (spectral angle),
+    or log-chromaticity log(x_b) − mean_b log(x_b) (a multiplicative shading factor cancels in both)."""
+    if features == "log-chromaticity":
+        top = float(cube.max()) if cube.size else 0.0
+        logs = np.log(np.maximum(cube, 1e-3 * top if top > 0 else 1e-12))
+        return (logs - logs.mean(axis=0, keepdims=True)).astype(np.float64)
+    norm = np.linalg.norm(cube, axis=0, keepdims=True)
+    return cube / np.maximum(norm, 1e-12)
+
+
+def homogeneous_pixels(
+    features: np.ndarray, fg: np.ndarray, max_angle_deg: float, scale: np.ndarray | None = None
+) -> np.ndarray:
+    """Foreground pixels away from the object's rim whose four neighbours all lie within
+    ``max_angle_deg`` of them (angle between feature vectors): the interior of material regions.
+
+    A spatial prior for the fit: pixels at the rim mix object and backdrop, pixels at a material
+    boundary mix two spectra (and the super-pixel grid samples the bands at slightly different
+    places), and the mixture would spend components on those blends. ``scale`` (per pixel, ≥ 1)
+    widens the angle where the noise is larger.
+    """
+    inner = ndimage.binary_erosion(fg, iterations=1)
+    unit = features / np.maximum(np.linalg.norm(features, axis=0, keepdims=True), 1e-12)
+    cos_min = np.ones(fg.shape)
+    for axis in (1, 2):
+        for step in (1, -1):
+            cos_min = np.minimum(cos_min, np.einsum("bhw,bhw->hw", unit, np.roll(unit, step, axis=axis)))
+    if scale is None:
+        return inner & (cos_min > np.cos(np.radians(max_angle_deg)))
+    limit = np.radians(np.minimum(max_angle_deg * scale, 89.0))
+    return inner & (np.arccos(np.clip(cos_min, -1.0, 1.0)) < limit)
+
+
+def majority_in_superpixels(labels: np.ndarray, superpixels: np.ndarray) -> np.ndarray:
+    """Replace each label by the most frequent label of its superpixel (0 in ``superpixels`` = untouched)."""
+    out = labels.copy()
+    sp = superpixels.ravel()
+    lab = labels.ravel()
+    sel = sp > 0
+    if not sel.any():
+        return out
+    n_lab = int(lab.max()) + 1
+    counts = np.bincount(sp[sel] * n_lab + lab[sel], minlength=(int(sp.max()) + 1) * n_lab)
+    winner = counts.reshape(-1, n_lab).argmax(axis=1)
+    flat = out.ravel()
+    flat[sel] = winner[sp[sel]]
+    return flat.reshape(labels.shape)
+
+
+class SpectralSegmenter:
+    """Classical multispectral material segmenter (see module docstring)."""
+
+    name = "spectral"
+
+    def __init__(
+        self,
+        *,
+        max_materials: int = 12,
+        min_materials: int = 1,
+        sample_size: int = 20_000,
+        seed: int = 0,
+        covariance_type: CovarianceType = "full",
+        reg_covar: float = 1e-5,
+        max_iter: int = 100,
+        bic_patience: int = 2,
+        merge_angle_deg: float = 1.5,
+        min_material_fraction: float = 0.002,
+        smooth: bool = False,
+        n_superpixels: int = 2000,
+        blas_threads: int | None = 1,
+        fit_pixels: FitPixels = "homogeneous",
+        homogeneity_deg: float = 3.0,
+        noise_scaled: bool = True,
+        brightness_weight: float = 0.1,
+        foreground: ForegroundRule = "backdrop",
+        criterion: Criterion = "bic",
+        features: Features = "unit",
+        weight_prior: float = 1e-3,
+        n_materials: int | None = None,
+    ) -> None:
+        if not 1 <= min_materials <= max_materials:
+            raise AnalysisInputError(
+                "max_materials",
+                f"need 1 ≤ min_materials ≤ max_materials, got {min_materials}, {max_materials}",
+            )
+        if sample_size < 2:
+            raise AnalysisInputError("sample_size", f"must be ≥ 2, got {sample_size}")
+        if covariance_type not in ("full", "tied", "diag", "spherical"):
+            raise AnalysisInputError("covariance_type", f"unknown covariance type {covariance_type!r}")
+        if bic_patience < 1:
+            raise AnalysisInputError("bic_patience", f"must be ≥ 1, got {bic_patience}")
+        if merge_angle_deg < 0:
+            raise AnalysisInputError("merge_angle_deg", f"must be ≥ 0, got {merge_angle_deg}")
+        if not 0 <= min_material_fraction < 1:
+            problem = f"must lie in [0, 1), got {min_material_fraction}"
+            raise AnalysisInputError("min_material_fraction", problem)
+        self.merge_angle_deg = float(merge_angle_deg)
+        self.min_material_fraction = float(min_material_fraction)
+        self.max_materials = int(max_materials)
+        self.min_materials = int(min_materials)
+        self.sample_size = int(sample_size)
+        self.seed = int(seed)
+        self.covariance_type: CovarianceType = covariance_type
+        self.reg_covar = float(reg_covar)
+        self.max_iter = int(max_iter)
+        self.bic_patience = int(bic_patience)
+        self.smooth = bool(smooth)
+        self.n_superpixels = int(n_superpixels)
+        if blas_threads is not None and blas_threads < 1:
+            raise AnalysisInputError("blas_threads", f"must be ≥ 1 or None, got {blas_threads}")
+        self.blas_threads = blas_threads
+        if fit_pixels not in ("homogeneous", "all"):
+            raise AnalysisInputError("fit_pixels", f"expected 'homogeneous' or 'all', got {fit_pixels!r}")
+        if not 0 < homogeneity_deg < 90:
+            raise AnalysisInputError("homogeneity_deg", f"must lie in (0, 90), got {homogeneity_deg}")
+        if criterion not in ("bic", "icl", "bayes"):
+            raise AnalysisInputError("criterion", f"expected 'bic', 'icl' or 'bayes', got {criterion!r}")
+        if features not in ("unit", "log-chromaticity"):
+            raise AnalysisInputError("features", f"expected 'unit' or 'log-chromaticity', got {features!r}")
+        if not weight_prior > 0:
+            raise AnalysisInputError("weight_prior", f"must be > 0, got {weight_prior}")
+        if n_materials is not None and not 1 <= n_materials <= max_materials:
+            problem = f"must lie in 1..max_materials ({max_materials}) or be None, got {n_materials}"
+            raise AnalysisInputError("n_materials", problem)
+        if brightness_weight < 0:
+            raise AnalysisInputError("brightness_weight", f"must be ≥ 0, got {brightness_weight}")
+        if foreground not in ("backdrop", "otsu"):
+            raise AnalysisInputError("foreground", f"expected 'backdrop' or 'otsu', got {foreground!r}")
+        self.noise_scaled = bool(noise_scaled)
+        self.brightness_weight = float(brightness_weight)
+        self.foreground: ForegroundRule = foreground
+        self.fit_pixels: FitPixels = fit_pixels
+        self.homogeneity_deg = float(homogeneity_deg)
+        self.criterion: Criterion = criterion
+        self.features: Features = features
+        self.weight_prior = float(weight_prior)
+        self.n_materials = n_materials
+
+    @classmethod
+    def for_build(cls, satellite: str, build: str, **options: object) -> SpectralSegmenter:
+        """The catalog mode: told how many materials the build has (``catalog.toml``), so nothing is
+        selected. Named ``spectral-catalog-k``; it knows what an image of an unknown object would not,
+        and is never what ``spectral`` does."""
+        k = len(load_catalog().build(satellite, build).materials)
+        upper = max(k, int(options.pop("max_materials", 12)))  # type: ignore[call-overload]
+        seg = cls(n_materials=k, max_materials=upper, **options)  # type: ignore[arg-type]
+        seg.name = "spectral-catalog-k"
+        return seg
+
+    def segment(self, cube: np.ndarray) -> np.ndarray:
+        return self.analyse(cube).labels
+
+    def _fit(self, sample: np.ndarray, n: int) -> GaussianMixture:
+        gm = GaussianMixture(
+            n_components=n,
+            covariance_type=self.covariance_type,
+            reg_covar=self.reg_covar,
+            max_iter=self.max_iter,
+            random_state=self.seed,
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)  # a non-converged fit still has a BIC
+            return gm.fit(sample)
+
+    def _fit_bayes(self, sample: np.ndarray, upper: int) -> BayesianGaussianMixture:
+        """Variational mixture with a sparse Dirichlet weight prior: surplus components get ~0 weight."""
+        bgm = BayesianGaussianMixture(
+            n_components=upper,
+            covariance_type=self.covariance_type,
+            weight_concentration_prior_type="dirichlet_distribution",
+            weight_concentration_prior=self.weight_prior,
+            reg_covar=self.reg_covar,
+            max_iter=max(self.max_iter, 200),
+            random_state=self.seed,
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            return bgm.fit(sample)
+
+    def _score(self, gm: GaussianMixture, sample: np.ndarray) -> float:
+        """BIC, or ICL = BIC + 2·(classification entropy), which also penalises overlapping components."""
+        value = float(gm.bic(sample))
+        if self.criterion == "icl":
+            z = gm.predict_proba(sample).astype(np.float64)
+            value -= 2.0 * float(np.sum(xlogy(z, z)))
+        return value
+
+    def _groups(self, gm: GaussianMixture | BayesianGaussianMixture, n_spectral: int) -> np.ndarray:
+        """0/1 matrix (components × surviving groups) after angle merging and the weight floor."""
+        n = gm.n_components
+        spec = gm.means_[:, :n_spectral]  # angle between the spectral parts (not brightness)
+        means = spec / np.maximum(np.linalg.norm(spec, axis=1, keepdims=True), 1e-12)
+        angle = np.degrees(np.arccos(np.clip(means @ means.T, -1.0, 1.0)))
+        parent = list(range(n))
+
+        def root(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for i in range(n):
+            for j in range(i + 1, n):
+                if angle[i, j] < self.merge_angle_deg:
+                    parent[root(j)] = root(i)
+        roots = sorted({root(i) for i in range(n)})
+        member = np.zeros((n, len(roots)))
+        for i in range(n):
+            member[i, roots.index(root(i))] = 1.0
+        weight = gm.weights_ @ member
+        keep = weight >= self.min_material_fraction
+        if not keep.any():
+            keep[int(weight.argmax())] = True
+        return member[:, keep]
+
+    def analyse(self, cube: object) -> SpectralSegmentation:
+        """Segment ``cube`` and return the labels with the fit's diagnostics."""
+        arr = as_cube(cube)
+        if self.blas_threads is None:
+            return self._analyse(arr)
+        with threadpool_limits(limits=self.blas_threads):
+            return self._analyse(arr)
+
+    def _analyse(self, arr: np.ndarray) -> SpectralSegmentation:
+        h, w = arr.shape[1:]
+        fg, threshold = foreground_mask(arr, self.foreground)
+        labels = np.zeros((h, w), dtype=np.int32)
+        n_fg = int(fg.sum())
+        if n_fg == 0:
+            return SpectralSegmentation(labels, 0, threshold, {}, 0)
+        if arr.shape[0] == 1:  # one band has no spectral shape: the foreground is one material
+            labels[fg] = 1
+            return SpectralSegmentation(labels, 1, threshold, {}, n_fg)
+        unit = features_of(arr, self.features)
+        energy = np.linalg.norm(arr, axis=0)
+        if self.brightness_weight > 0:  # albedo cue: achromatic materials differ mostly in brightness
+            log_e = np.log(np.maximum(energy, 1e-12))[np.newaxis]
+            feats = np.concatenate([unit, self.brightness_weight * log_e])
+        else:
+            feats = unit
+        spectra = feats[:, fg].T  # (n_fg, features)
+        if self.fit_pixels == "all":
+            fit = fg
+        else:
+            scale = None
+            if self.noise_scaled:  # angular noise grows as 1/√signal (shot noise): dark pixels get more room
+                ref = float(np.median(energy[fg]))
+                scale = np.sqrt(np.maximum(ref / np.maximum(energy, 1e-12), 1.0))
+            fit = homogeneous_pixels(unit, fg, self.homogeneity_deg, scale)
+        if int(fit.sum()) < MIN_FIT_PIXELS:  # too few clean pixels (a tiny or noisy object): use them all
+            fit = fg
+        pool = feats[:, fit].T
+        rng = np.random.default_rng(self.seed)
+        sample = pool
+        if pool.shape[0] > self.sample_size:
+            sample = pool[rng.choice(pool.shape[0], self.sample_size, replace=False)]
+        upper = min(self.max_materials, max(1, sample.shape[0] - 1))
+        bic: dict[int, float] = {}
+        best: GaussianMixture | BayesianGaussianMixture | None = None
+        if self.n_materials is not None:  # the count is given (e.g. from the catalog): no selection
+            best = self._fit(sample, min(self.n_materials, upper))
+        elif self.criterion == "bayes":
+            best = self._fit_bayes(sample, upper)
+        else:
+            best_n, stale = 0, 0
+            for n in range(min(self.min_materials, upper), upper + 1):
+                gm = self._fit(sample, n)
+                bic[n] = self._score(gm, sample)
+                if best is None or bic[n] < bic[best_n]:
+                    best, best_n, stale = gm, n, 0
+                else:
+                    stale += 1
+                    if stale >= self.bic_patience:
+                        break
+        assert best is not None
+        groups = self._groups(best, unit.shape[0])
+        resp = best.predict_proba(spectra) @ groups  # (n_fg, n_groups) summed posteriors
+        comp = resp.argmax(axis=1)
+        n_groups = groups.shape[1]
+        sizes = np.bincount(comp, minlength=n_groups)
+        order = np.argsort(-sizes, kind="stable")
+        rank = np.empty(n_groups, dtype=np.int32)
+        rank[order] = np.arange(1, n_groups + 1, dtype=np.int32)
+        labels[fg] = rank[comp]
+        if self.smooth:
+            shown = np.zeros_like(unit)
+            shown[:, fg] = unit[:, fg]
+            sp = slic(shown, n_segments=self.n_superpixels, slic_zero=True, mask=fg, channel_axis=0,
+                      start_label=1)
+            labels = majority_in_superpixels(labels, sp).astype(np.int32)
+        n_used = int(np.count_nonzero(np.bincount(labels.ravel())[1:]))
+        return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)

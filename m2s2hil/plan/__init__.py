@@ -1,0 +1,53 @@
+"""Capture plans: a :class:`Sweep` (what to capture and how), the :class:`CaptureEvent` list it
+expands to in the cheapest order, and how long that takes.
+
+``model`` holds the vocabulary (exposure and dark policies, events and their ids), ``estimate``
+the duration model and its lower bound, ``order`` the search over loop nestings, ``sweep`` the
+sweep itself; they import one way (model ← estimate ← order ← sweep). The names below are the
+package's API.
+"""
+
+from m2s2hil.plan.estimate import (
+    ContinuousEstimate,
+    PlanEstimate,
+    estimate,
+    estimate_continuous,
+    move_time_s,
+    switch_warmup_s,
+)
+from m2s2hil.plan.model import (
+    AXES,
+    DEFAULT_EXPOSURE_S,
+    AutoExposureSettings,
+    CaptureEvent,
+    DarkPolicy,
+    FixedExposure,
+    PlanError,
+    dark_event,
+    dark_event_id,
+    frame_event_id,
+)
+from m2s2hil.plan.order import commanded_azimuths
+from m2s2hil.plan.sweep import Sweep, parse_sweep
+
+__all__ = [
+    "AXES",
+    "DEFAULT_EXPOSURE_S",
+    "AutoExposureSettings",
+    "CaptureEvent",
+    "ContinuousEstimate",
+    "DarkPolicy",
+    "FixedExposure",
+    "PlanError",
+    "PlanEstimate",
+    "Sweep",
+    "commanded_azimuths",
+    "dark_event",
+    "dark_event_id",
+    "estimate",
+    "estimate_continuous",
+    "frame_event_id",
+    "move_time_s",
+    "parse_sweep",
+    "switch_warmup_s",
+]

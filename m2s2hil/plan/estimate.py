@@ -1,0 +1,209 @@
+"""The duration model of a plan: how long its events take on a rig, and the physics floor.
+
+Stop-and-go (:func:`estimate`): a trapezoidal velocity profile per axis
+(``t = 2·sqrt(d/a)`` if ``d < v²/a`` else ``d/v + v/a``), settle after each move,
+exposure + readout (1/max_fps) per frame, lamp warm-up per switch (only lamps that
+were off need to warm up), dark frames. The lower bound keeps only physics: both axes
+moving together, lamps warming while the stage moves, no settling. Continuous rotation
+(:func:`estimate_continuous`): one constant-ω sweep per pass, with its run-up and run-down.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
+
+from pydantic import Field
+
+from m2s2hil.config import AxisConfig, RigConfig
+from m2s2hil.errors import UsageError
+from m2s2hil.plan.model import CaptureEvent, PlanModel
+
+if TYPE_CHECKING:
+    from m2s2hil.plan.sweep import Sweep
+
+
+def turntable_range(rig: RigConfig) -> tuple[float, float]:
+    """Commandable turntable angles: the soft limits intersected with the cable-wrap limit."""
+    ax = rig.axes["turntable"]
+    lo, hi = ax.min_deg, ax.max_deg
+    if ax.cable_wrap_limit_deg is not None:
+        lo, hi = max(lo, -ax.cable_wrap_limit_deg), min(hi, ax.cable_wrap_limit_deg)
+    return lo, hi
+
+
+def move_time_s(distance_deg: float, axis: AxisConfig) -> float:
+    """Point-to-point time of a trapezoidal (or triangular) velocity profile."""
+    d = abs(distance_deg)
+    if d <= 0:
+        return 0.0
+    v, a = axis.max_speed_dps, axis.accel_dps2
+    if d < v * v / a:
+        return 2.0 * math.sqrt(d / a)
+    return d / v + v / a
+
+
+def switch_warmup_s(rig: RigConfig, previous: str | None, new: str) -> float:
+    """Warm-up after switching lighting from ``previous`` to ``new``: only lamps that were
+    off need to stabilise (a lamp that stays on is already warm)."""
+    was_on = set(rig.lighting[previous]) if previous else set()
+    return max((rig.lamps[n].warmup_s for n in rig.lighting[new] if n not in was_on), default=0.0)
+
+
+class PlanEstimate(PlanModel):
+    total_s: float
+    lower_bound_s: float
+    breakdown: dict[str, float]  # seconds per component of total_s
+    counts: dict[str, int] = Field(default_factory=dict)
+
+
+def _settle(ev: CaptureEvent, rig: RigConfig, moved: Iterable[str]) -> float:
+    moved = list(moved)
+    if not moved:
+        return 0.0
+    if ev.settle_s is not None:
+        return ev.settle_s
+    return max(rig.axes[m].settle_s for m in moved)
+
+
+def estimate(events: Sequence[CaptureEvent], rig: RigConfig, *,
+             start_pose: tuple[float, float] = (0.0, 0.0), parallel_axes: bool = False) -> PlanEstimate:
+    """Duration of a stop-and-go event list from ``start_pose`` (turntable, tilt).
+
+    ``total_s`` models the engine: axes moved one after the other unless
+    ``parallel_axes``, then settle, then lamp warm-up, then exposure + readout.
+    ``lower_bound_s`` is the physics floor of the same order: axes in parallel, warm-up
+    overlapping the move, no settle.
+    """
+    tt, tl = rig.axes["turntable"], rig.axes["tilt"]
+    readout = 1.0 / rig.camera.model.max_fps
+    pos = {"turntable": start_pose[0], "tilt": start_pose[1]}
+    light: str | None = None
+    b = dict(motion=0.0, settle=0.0, warmup=0.0, exposure=0.0, readout=0.0, dark=0.0)
+    lower = 0.0
+    n = dict(frames=0, darks=0, dark_frames=0, moves=0, switches=0)
+    for ev in events:
+        if ev.kind == "dark":
+            t = ev.n_frames * (ev.exposure_s + readout)
+            b["dark"] += t
+            lower += t
+            n["darks"] += 1
+            n["dark_frames"] += ev.n_frames
+            continue
+        assert ev.azimuth_deg is not None and ev.tilt_deg is not None and ev.lighting is not None
+        d_tt = ev.azimuth_deg - pos["turntable"]
+        d_tl = ev.tilt_deg - pos["tilt"]
+        t_tt, t_tl = move_time_s(d_tt, tt), move_time_s(d_tl, tl)
+        moved = [a for a, d in (("turntable", d_tt), ("tilt", d_tl)) if abs(d) > 1e-9]
+        move = max(t_tt, t_tl) if parallel_axes else t_tt + t_tl
+        warm = 0.0
+        if ev.lighting != light:
+            warm = switch_warmup_s(rig, light, ev.lighting)
+            light = ev.lighting
+            n["switches"] += 1
+        settle = _settle(ev, rig, moved)
+        b["motion"] += move
+        b["settle"] += settle
+        b["warmup"] += warm
+        b["exposure"] += ev.exposure_s
+        b["readout"] += readout
+        lower += max(max(t_tt, t_tl), warm) + ev.exposure_s + readout
+        n["frames"] += 1
+        n["moves"] += bool(moved)
+        pos["turntable"], pos["tilt"] = ev.azimuth_deg, ev.tilt_deg
+    total = sum(b.values())
+    return PlanEstimate(total_s=total, lower_bound_s=min(lower, total), breakdown=b, counts=n)
+
+
+class ContinuousEstimate(PlanModel):
+    """Continuous rotation: the turntable sweeps each pass at a constant ω while the camera
+    streams, and the frame nearest each nominal azimuth is kept."""
+
+    omega_dps: dict[str, float]  # per lighting condition
+    frame_interval_s: dict[str, float]
+    blur_deg: dict[str, float]  # ω · t_exp
+    blur_px: dict[str, float]  # at radius_px from the rotation axis
+    runup_deg: dict[str, float]  # ω²/2a before the first and after the last azimuth
+    within_cable_limit: bool
+    total_s: float
+    lower_bound_s: float
+    breakdown: dict[str, float]
+
+    def as_plan_estimate(self) -> PlanEstimate:
+        return PlanEstimate(total_s=self.total_s, lower_bound_s=self.lower_bound_s, breakdown=self.breakdown)
+
+
+def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
+                        max_blur_px: float | None = None,
+                        events: Sequence[CaptureEvent] | None = None) -> ContinuousEstimate:
+    """ω per condition: as fast as the turntable allows, but one azimuth step must take at
+    least ``frames_per_pose`` frame intervals (frame interval = max(1/max_fps, exposure))
+    and, if given, the blur at ``radius_px`` must stay under ``max_blur_px``."""
+    if radius_px <= 0:
+        raise UsageError(f"radius_px must be positive, not {radius_px}")
+    tt, tl = rig.axes["turntable"], rig.axes["tilt"]
+    fps = rig.camera.model.max_fps
+    step = sweep.azimuth_step_deg
+    omega: dict[str, float] = {}
+    interval: dict[str, float] = {}
+    blur_deg: dict[str, float] = {}
+    blur_px: dict[str, float] = {}
+    runup: dict[str, float] = {}
+    for c in sweep.lighting:
+        exp = sweep.exposure_for(c)
+        fi = max(1.0 / fps, exp)
+        w = min(tt.max_speed_dps, step / (sweep.frames_per_pose * fi))
+        if max_blur_px is not None:
+            w = min(w, math.degrees(max_blur_px / radius_px) / exp)
+        omega[c], interval[c] = w, fi
+        blur_deg[c] = w * exp
+        blur_px[c] = radius_px * math.radians(blur_deg[c])
+        runup[c] = w * w / (2 * tt.accel_dps2)
+    if events is None:
+        events = sweep.expand(rig)
+    lo, hi = turntable_range(rig)
+    b = dict(motion=0.0, sweep=0.0, settle=0.0, warmup=0.0, dark=0.0)
+    lower = 0.0
+    pos_tt, pos_tl = 0.0, 0.0
+    light: str | None = None
+    within = True
+    frames = [e for e in events if e.kind == "frame"]
+    for ev in events:
+        if ev.kind == "dark":
+            t = ev.n_frames * (ev.exposure_s + 1.0 / fps)
+            b["dark"] += t
+            lower += t
+    passes: dict[int, list[CaptureEvent]] = {}
+    for ev in frames:
+        passes.setdefault(ev.pass_index, []).append(ev)
+    for p in sorted(passes):
+        evs = passes[p]
+        c = evs[0].lighting
+        assert c is not None and evs[0].azimuth_deg is not None and evs[0].tilt_deg is not None
+        w, r = omega[c], runup[c]
+        a0, a1 = evs[0].azimuth_deg, evs[-1].azimuth_deg
+        direction = 1.0 if a1 >= a0 else -1.0
+        start, end = a0 - direction * r, a1 + direction * r
+        if min(start, end) < lo - 1e-9 or max(start, end) > hi + 1e-9:
+            within = False
+        t_tt = move_time_s(start - pos_tt, tt)
+        t_tl = move_time_s(evs[0].tilt_deg - pos_tl, tl)
+        warm = switch_warmup_s(rig, light, c) if c != light else 0.0
+        light = c
+        moved = [a for a, t in (("turntable", t_tt), ("tilt", t_tl)) if t > 0]
+        settle = _settle(evs[0], rig, moved)
+        # Run-up and run-down at acceleration a take ω/a together; the span at ω.
+        span = abs(a1 - a0)
+        t_sweep = span / w + w / tt.accel_dps2 + (sweep.frames_per_pose - 1) * interval[c]
+        b["motion"] += t_tt + t_tl
+        b["settle"] += settle
+        b["warmup"] += warm
+        b["sweep"] += t_sweep
+        lower += max(t_tt, t_tl, warm) + t_sweep
+        pos_tt, pos_tl = end, evs[0].tilt_deg
+    total = sum(b.values())
+    return ContinuousEstimate(
+        omega_dps=omega, frame_interval_s=interval, blur_deg=blur_deg, blur_px=blur_px, runup_deg=runup,
+        within_cable_limit=within, total_s=total, lower_bound_s=min(lower, total), breakdown=b,
+    )

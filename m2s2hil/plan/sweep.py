@@ -1,0 +1,178 @@
+"""A capture plan as data: the serialisable :class:`Sweep`.
+
+A sweep names what to capture (satellite, build, lighting conditions, elevations,
+azimuth grid, frames per pose) and how (exposure policy, gain, settle, dark policy,
+processing method, loop nesting, stop-and-go or continuous rotation). It validates
+against the catalog, round-trips through JSON, and :meth:`Sweep.expand` turns it into
+a deterministic list of frozen capture events in the order :mod:`m2s2hil.plan.order`
+finds cheapest.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
+
+from m2s2hil.catalog import load_catalog
+from m2s2hil.config import RigConfig
+from m2s2hil.errors import CatalogError, validation_problem
+from m2s2hil.plan.estimate import PlanEstimate, estimate, estimate_continuous
+from m2s2hil.plan.model import (
+    AXES,
+    AutoExposureSettings,
+    CaptureEvent,
+    DarkPolicy,
+    FixedExposure,
+    PlanError,
+    PlanModel,
+    condition_key,
+)
+from m2s2hil.plan.order import best_plan
+
+
+class Sweep(PlanModel):
+    """A capture plan for one satellite build (see module docstring)."""
+
+    satellite: str
+    build: str
+    lighting: list[str] = Field(default_factory=lambda: ["weak", "strong", "directional"], min_length=1)
+    tilts: list[str] = Field(default_factory=lambda: ["E0", "E1", "E2"], min_length=1)
+    # 0.01 deg (36,000 poses) bounds the grid in the schema too; the frame limit is checked apart.
+    azimuth_step_deg: Annotated[float, Field(ge=0.01, le=360)] = 10.0
+    azimuth_start_deg: Annotated[float, Field(ge=0, lt=360)] = 0.0
+    frames_per_pose: Annotated[int, Field(ge=1, le=100)] = 1
+    exposure: FixedExposure | AutoExposureSettings = Field(
+        default_factory=FixedExposure, discriminator="mode"
+    )
+    gain: Annotated[float, Field(ge=0, le=48)] = 1.0
+    settle_s: Annotated[float, Field(ge=0, le=60)] | None = None
+    dark: DarkPolicy = DarkPolicy()
+    processing: str = Field(default="superpixel", pattern=r"^[a-z][a-z0-9_-]*$")
+    axis_order: str = "auto"
+    reorder: bool = True  # choose the order of conditions and tilts by cost
+    mode: Literal["stop-and-go", "continuous"] = "stop-and-go"
+
+    @field_validator("satellite")
+    @classmethod
+    def _sat(cls, v: str) -> str:
+        try:
+            return load_catalog().satellite(v).key
+        except CatalogError as exc:
+            raise ValueError(str(exc)) from None
+
+    @field_validator("build")
+    @classmethod
+    def _build(cls, v: str, info: ValidationInfo) -> str:
+        sat = info.data.get("satellite")
+        if sat is None:  # the satellite already failed; that error is enough
+            return v
+        try:
+            return load_catalog().build(sat, v).key
+        except CatalogError as exc:
+            raise ValueError(str(exc)) from None
+
+    @field_validator("lighting")
+    @classmethod
+    def _lighting(cls, v: list[str]) -> list[str]:
+        keys = [condition_key(x) for x in v]
+        dup = sorted({k for k in keys if keys.count(k) > 1})
+        if dup:
+            raise ValueError(f"lighting condition listed twice: {', '.join(dup)}")
+        return keys
+
+    @field_validator("tilts")
+    @classmethod
+    def _tilts(cls, v: list[str]) -> list[str]:
+        try:
+            keys = [load_catalog().elevation(str(x)).key for x in v]
+        except CatalogError as exc:
+            raise ValueError(str(exc)) from None
+        dup = sorted({k for k in keys if keys.count(k) > 1})
+        if dup:
+            raise ValueError(f"elevation listed twice: {', '.join(dup)}")
+        return keys
+
+    @field_validator("exposure", mode="before")
+    @classmethod
+    def _exposure_shorthand(cls, v: Any) -> Any:
+        if isinstance(v, str):
+            if v.strip().lower() == "auto":
+                return {"mode": "auto"}
+            raise ValueError(f"exposure must be 'auto' or a table condition -> seconds, not {v!r}")
+        if isinstance(v, dict) and "mode" not in v:
+            return {"mode": "fixed", "seconds": v}
+        return v
+
+    @field_validator("axis_order")
+    @classmethod
+    def _axis_order(cls, v: str) -> str:
+        v = v.replace(" ", "").lower()
+        if v == "auto":
+            return v
+        parts = v.split(">")
+        if sorted(parts) != sorted(AXES):
+            raise ValueError(
+                f"axis_order {v!r} must be 'auto' or name light, tilt and azimuth once each, "
+                "outermost first, e.g. 'light>tilt>azimuth'"
+            )
+        return v
+
+    @model_validator(mode="after")
+    def _modes(self) -> Sweep:
+        order = self.axis_order
+        if self.mode == "continuous" and order != "auto" and not order.endswith(">azimuth"):
+            raise ValueError("continuous mode sweeps the turntable: azimuth must be the innermost axis")
+        return self
+
+    # ------------------------------------------------------------------ views
+    @property
+    def auto_exposure(self) -> bool:
+        return isinstance(self.exposure, AutoExposureSettings)
+
+    def exposure_for(self, condition: str) -> float:
+        """The planned (fixed) or starting (auto) exposure of a condition."""
+        exp = self.exposure
+        table = exp.start_s if isinstance(exp, AutoExposureSettings) else exp.seconds
+        return table[condition]
+
+    def azimuths(self) -> list[float]:
+        """Nominal azimuths, 0 <= a < 360, in grid order from ``azimuth_start_deg``."""
+        n = math.ceil(360.0 / self.azimuth_step_deg - 1e-9)
+        return [round((self.azimuth_start_deg + i * self.azimuth_step_deg) % 360.0, 6) for i in range(n)]
+
+    def to_json(self) -> str:
+        return self.model_dump_json(indent=2)
+
+    @classmethod
+    def from_json(cls, text: str, source: str = "<sweep json>") -> Sweep:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise PlanError(source, "", f"not valid JSON: {exc}") from None
+        return parse_sweep(data, source)
+
+    # -------------------------------------------------------------- expansion
+    def expand(self, rig: RigConfig) -> list[CaptureEvent]:
+        """The events of this sweep in capture order (darks first). Deterministic."""
+        return best_plan(self, rig)[0]
+
+    def chosen_order(self, rig: RigConfig) -> str:
+        """The axis nesting :meth:`expand` uses (resolves ``"auto"``)."""
+        return best_plan(self, rig)[1]
+
+    def estimate(self, rig: RigConfig, *, radius_px: float = 400.0) -> PlanEstimate:
+        events = self.expand(rig)
+        if self.mode == "continuous":
+            return estimate_continuous(self, rig, radius_px=radius_px, events=events).as_plan_estimate()
+        return estimate(events, rig)
+
+
+def parse_sweep(data: Any, source: str = "<sweep>") -> Sweep:
+    """Validate plain data into a :class:`Sweep`, turning pydantic errors into a PlanError."""
+    try:
+        return Sweep.model_validate(data)
+    except ValidationError as exc:
+        raise PlanError(source, *validation_problem(exc)) from None
