@@ -4,6 +4,9 @@ A reader (or a resumed session) therefore sees either the old file or the comple
 one under the final name, never a partial file. A full disk (ENOSPC, EDQUOT) becomes the
 typed :class:`DiskFull` so the engine can suspend instead of crashing; the temporary
 files are removed on every failure path.
+
+A leaf of the application (it imports only m2s2hil.errors), so that the session store,
+processing (darks, calibrations), the rig and the analysis all write through it.
 """
 
 from __future__ import annotations

@@ -5,11 +5,9 @@ Subcommand groups live in ``m2s2hil/commands/``, one module each.
 
 from __future__ import annotations
 
-import sys
-
 import typer
 
-from m2s2hil.errors import M2S2Error
+from m2s2hil.commands.running import run_app
 
 app = typer.Typer(
     name="m2s2hil",
@@ -41,21 +39,11 @@ def _register() -> None:
 _register()
 
 
-def _run(typer_app: typer.Typer) -> None:
-    """Run in click's standalone mode (usage errors exit 2) and turn our typed errors
-    into one line on stderr with their exit code instead of a traceback."""
-    try:
-        typer_app()
-    except M2S2Error as exc:
-        typer.secho(f"error: {exc}", err=True, fg="red")
-        sys.exit(exc.exit_code)
-
-
 def main() -> None:
-    _run(app)
+    run_app(app)
 
 
 def capture_main() -> None:
     from m2s2hil.commands.capture import app as capture_app
 
-    _run(capture_app)
+    run_app(capture_app)

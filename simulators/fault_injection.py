@@ -45,7 +45,9 @@ _SERIAL: dict[str, tuple[str, ...]] = {
 _SLOW_RIG: dict[str, tuple[str, ...]] = {"slow_motion": ("factor",), "hang": ("fraction",)}
 
 #: For each kind of simulated device (the rig file's protocol names, ``u3v`` for the
-#: camera), the fault kinds its simulator handles and the parameters each kind takes.
+#: camera), the fault kinds its simulator handles and the parameters each kind takes. Each
+#: kind's registry entry reads its row (m2s2hil/rig/devices/, ``DeviceKind.fault_kinds``);
+#: tests/test_rig_devices.py checks that the entry's simulator asks for exactly these.
 FAULT_KINDS_BY_DEVICE: dict[str, dict[str, tuple[str, ...]]] = {
     "grbl": {**_SERIAL, "stall": ("fraction",), "alarm": ("at", "code"), **_SLOW_RIG, "hold_stuck": ()},
     "zaber": {**_SERIAL, "stall": ("fraction",), "alarm": ("at", "flag"), **_SLOW_RIG},

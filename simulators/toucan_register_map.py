@@ -238,7 +238,7 @@ def encode_block(base: int, size: int, values: Mapping[int, Value]) -> bytes:
     return bytes(b)
 
 
-_POWER_ON_FORMAT = PixelFormat(default_of(FeatureReg.PIXEL_FORMAT))
+_POWER_ON_FORMAT = PixelFormat(int(default_of(FeatureReg.PIXEL_FORMAT)))
 
 
 @dataclass

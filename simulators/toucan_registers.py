@@ -16,6 +16,7 @@ import struct
 import zipfile
 from collections.abc import Callable
 from enum import Enum
+from typing import Any
 
 from m2s2hil.protocols import u3v
 from m2s2hil.protocols.u3v import ABRM, SIRM, PixelFormat, Status
@@ -61,7 +62,7 @@ class RegisterSpace:
     def __init__(
         self,
         *,
-        clock: object,
+        clock: Any,
         strings: dict[int, str],
         width: int,
         height: int,
@@ -86,7 +87,7 @@ class RegisterSpace:
         self.settings = Settings()
         if self.bit_depth > 10:
             self.settings.pixel_format = PixelFormat.Mono12 if self.bit_depth == 12 else PixelFormat.Mono16
-        self.boot = self.clock.monotonic()  # type: ignore[attr-defined]
+        self.boot = self.clock.monotonic()
         self._latched_ts = 0
         self.sirm_host: dict[SIRM, int] = dict.fromkeys(HOST_SIRM, 0)
         self.si_enabled = False
@@ -108,7 +109,7 @@ class RegisterSpace:
         return u3v.payload_size(self.settings.pixel_format, self.width, self.height)
 
     def timestamp(self) -> int:
-        return round((self.clock.monotonic() - self.boot) * 1e9)  # type: ignore[attr-defined]
+        return round((self.clock.monotonic() - self.boot) * 1e9)
 
     def _temperature(self) -> float:
         t = self.temperature_c

@@ -49,7 +49,8 @@ def render(source: FrameSource, exposure_s: float, gain: float, start_s: float,
     """The frame ``source`` gives for an exposure that began at ``start_s``; a frame of another
     ``shape`` than the sensor's (height, width) is a ValueError."""
     if _takes_start(source):
-        img = source.capture(exposure_s, gain, start_s=start_s)
+        timed: Any = source  # its capture() takes start_s too (checked above)
+        img = timed.capture(exposure_s, gain, start_s=start_s)
     else:
         img = source.capture(exposure_s, gain)
     if img.shape != shape:

@@ -20,8 +20,9 @@ from typing import Any
 import httpx
 from fastapi.testclient import TestClient
 
-from m2s2hil.api import SessionManager, create_app
+from m2s2hil.api import create_app
 from m2s2hil.config import RigConfig, default_rig, load_rig, parse_rig
+from m2s2hil.daemon.manager import SessionManager
 from m2s2hil.rig.factory import open_simulated_rig
 
 TOKEN = "s3cret-token-for-tests-0123456789"
@@ -87,7 +88,7 @@ def daemon(root: Path, *, token: str | None = None, rig_config: RigConfig | None
             mgr.start()
         app = create_app(mgr, token=token, **app_kw)
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        headers["X-M2S2HIL"] = "1"  # a script, not a web page (see m2s2hil/api/csrf.py)
+        headers["X-M2S2HIL"] = "1"  # a script, not a web page (see m2s2hil/api/guards/csrf.py)
         with TestClient(app, base_url="http://127.0.0.1:8750", headers=headers) as client:
             yield Daemon(rig, mgr, client, root)
         mgr.close(abort=True, timeout=30)

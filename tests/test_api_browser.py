@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 from api_support import daemon, free_port, sweep, uvicorn_thread
 
-from m2s2hil.api.csrf import STATE_CHANGING
+from m2s2hil.api.guards.csrf import STATE_CHANGING
 
 pytestmark = pytest.mark.slow  # a browser and two servers: about 10 s
 

@@ -13,12 +13,12 @@ import httpx
 import pytest
 from api_support import daemon, sweep, uvicorn_thread
 
-from m2s2hil.api import admission
-from m2s2hil.api.csrf import normalise_origin
-from m2s2hil.api.hosts import split_host
-from m2s2hil.api.logsafe import clean_text
+from m2s2hil.api.guards.csrf import normalise_origin
+from m2s2hil.api.guards.hosts import split_host
+from m2s2hil.api.guards.logsafe import clean_text
 from m2s2hil.api.settings import load_serve_settings
 from m2s2hil.atomic import DiskFull
+from m2s2hil.daemon import admission
 from m2s2hil.errors import ConfigError
 from m2s2hil.plan import Sweep
 
@@ -252,7 +252,7 @@ def test_cross_origin_websockets_are_refused() -> None:
     from starlette.testclient import TestClient
     from starlette.websockets import WebSocket, WebSocketDisconnect
 
-    from m2s2hil.api.csrf import CrossSiteGuard
+    from m2s2hil.api.guards.csrf import CrossSiteGuard
 
     async def echo(ws: WebSocket) -> None:
         await ws.accept()

@@ -120,6 +120,7 @@ def test_a_failed_sessions_hold_is_on_disk(tmp_path) -> None:
     with daemon(root, faults={"stage": [{"kind": "alarm", "count": 2, "after": 2}]}) as d:
         sid = d.client.post("/sessions", json=sweep()).json()["session_id"]
         assert d.wait_done(sid)["state"] == "failed"
+        assert d.manager.job(sid).finished.wait(10)  # its end handled: held, on disk, then finished
         on_disk = HoldFile(root).load()
         assert on_disk is not None and on_disk.reason.startswith(f"session {sid} failed: StageAlarm")
         assert d.client.get("/queue").json()["held"] == on_disk.reason

@@ -11,7 +11,7 @@ from importlib import resources
 import pytest
 from api_support import DaemonProcess, free_port, quick_rig_file
 
-from m2s2hil.api.rootlock import RootLocked, lock_data_root
+from m2s2hil.daemon.rootlock import RootLocked, lock_data_root
 from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
 from m2s2hil.store.session import SessionStore
 

@@ -10,7 +10,7 @@ import sys
 import pytest
 from api_support import TOKEN, daemon, sweep
 
-from m2s2hil.api.security import InsecureListen, check_listen, is_loopback
+from m2s2hil.api.guards.security import InsecureListen, check_listen, is_loopback
 from m2s2hil.api.settings import load_serve_settings
 from m2s2hil.errors import ConfigError
 

@@ -63,7 +63,7 @@ def test_create_run_and_read_back(d) -> None:
     # pagination and a second look from the journal (as after a daemon restart)
     page = d.client.get(f"/sessions/{sid}/frames", params={"offset": 1, "limit": 2}).json()
     assert [i["n"] for i in page["items"]] == [i["n"] for i in frames["items"][1:3]]
-    d.manager._jobs.clear()  # forget the live job: status now comes from disk
+    d.manager.known_jobs().clear()  # forget the live job: status now comes from disk
     disk = d.client.get(f"/sessions/{sid}").json()
     assert disk["live"] is False and disk["state"] == "completed" and disk["done"] == 5
 

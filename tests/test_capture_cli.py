@@ -78,6 +78,7 @@ def test_dry_run_prints_plan_and_estimate():
     assert "built-in simulated rig" in res.stderr
 
 
+@pytest.mark.slow  # a whole capture in a new interpreter: ~5 s
 def test_capture_runs_a_complete_checksummed_session(tmp_path):
     rig = small_rig(tmp_path)
     out = tmp_path / "data"

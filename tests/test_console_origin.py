@@ -11,8 +11,9 @@ from api_support import daemon
 from fastapi.testclient import TestClient
 from rig_files import write_rig
 
-from m2s2hil.api import SessionManager, create_app
+from m2s2hil.api import create_app
 from m2s2hil.config import load_rig
+from m2s2hil.daemon.manager import SessionManager
 from m2s2hil.rig.factory import open_rig
 from m2s2hil.rig.origin import set_origin, state_path
 from m2s2hil.rig.pty_serve import SimServer

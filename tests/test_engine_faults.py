@@ -6,13 +6,18 @@ Faults are injected through the simulators' FaultPlans (``open_simulated_rig(fau
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
-from engine_helpers import assert_rig_safe, session
+from engine_helpers import assert_rig_safe, make_engine, session, small_rig_config, small_sweep
 from m2s2hil.drivers.errors import DeviceGone, RelayNotSwitched, StageAlarm
 
 from m2s2hil.engine.fault_policy import FaultPolicy
+from m2s2hil.engine.recovery import alarm_recovery
 from m2s2hil.engine.runner import SessionFailed
 from m2s2hil.engine.state import FaultRecorded, FrameStored, RunState, SessionFinished
+from m2s2hil.rig.factory import open_simulated_rig
+from m2s2hil.store.session import SessionStore
 
 S = RunState
 FRAME_IDS = ["weak/E1/az000/f0", "weak/E1/az090/f0", "weak/E1/az180/f0", "weak/E1/az270/f0"]
@@ -180,3 +185,45 @@ def test_abort_during_a_fault_wins_over_the_recovery(tmp_path) -> None:
         assert b"$H" not in after  # no homing after the abort ...
         assert b"G0" not in after and b"G1" not in after  # ... and no further move
         assert_rig_safe(rig)
+
+
+def _without_switches(cfg):
+    axes = {r: a.model_copy(update={"homing": "none"}) for r, a in cfg.axes.items()}
+    return cfg.model_copy(update={"axes": axes})
+
+
+def test_an_alarm_on_axes_without_switches_is_unlocked_and_says_so_never_homed(tmp_path) -> None:
+    """The fault line names what is done: an axis without switches is never homed (issue 21)."""
+    cfg = small_rig_config()
+    opened = open_simulated_rig(cfg, faults={"stage": [{"kind": "alarm", "after": 1}]})
+    # The same simulated stage, as a rig file without switches describes it.
+    rig = dataclasses.replace(opened, config=_without_switches(cfg))
+    store = SessionStore.create(tmp_path, small_sweep(), rig.config, session_id="s1", clock=rig.clock)
+    stage = rig.sims["stage"]
+    before = len(stage.received)
+    try:
+        st = make_engine(rig, store).run()
+        assert st.state is S.COMPLETED
+        assert _actions(st, "alarm") == ["unlock+retry"]
+        journal = [e["payload"]["action"] for e in store.events() if e["kind"] == "fault"]
+        assert journal == ["unlock+retry"]
+        sent = bytes(stage.received[before:])
+        assert b"$X" in sent and b"$H" not in sent
+        assert_rig_safe(rig)
+    finally:
+        store.close()
+        opened.close()
+
+
+def test_alarm_recovery_names_what_clearing_the_alarm_does(tmp_path) -> None:
+    cfg = small_rig_config()
+    rig = open_simulated_rig(cfg)
+    try:
+        stage = [link for link in rig.links if link.axis_roles]
+        assert alarm_recovery(stage, cfg.axes) == "home"  # switches: homed
+        assert alarm_recovery(stage, _without_switches(cfg).axes) == "unlock"  # reset and $X
+        no_alarm = [dataclasses.replace(link, alarm=None) for link in stage]
+        assert alarm_recovery(no_alarm, _without_switches(cfg).axes) == "re-read"  # position only
+        assert alarm_recovery(no_alarm, cfg.axes) == "home"  # each axis homed on its switches
+    finally:
+        rig.close()

@@ -1,21 +1,17 @@
 """The fault matrix, reduced for CI: every device × fault kind once and persistent, a seeded
 few-percent rate on one kind per device, every SIGKILL point and both disk cells, each checked
-against the session invariants (benchmarks/fault_matrix.py has the cells, the invariants and
-the full matrix whose table is in docs/reliability.md).
+against the session invariants (tests/fault_harness.py has the cells and the invariants;
+benchmarks/fault_matrix.py runs the full matrix whose table is in docs/reliability.md).
 
 Small sensor (256×256), one lighting, one tilt, four azimuths: a cell costs well under a
 second in-process; a kill cell pays for a child interpreter."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
+import fault_harness as fm
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-import fault_matrix as fm
 
 FEW = {"stage": "late_reply", "relays": "garble", "toucan": "frame_timeout"}
 CELLS = (
@@ -26,7 +22,11 @@ CELLS = (
 )
 
 
-@pytest.mark.parametrize("cell", CELLS, ids=[c.name for c in CELLS])
+# a kill cell starts a child interpreter that captures until it kills itself: seconds each
+PARAMS = [pytest.param(c, id=c.name, marks=[pytest.mark.slow] if c.group == "kill" else []) for c in CELLS]
+
+
+@pytest.mark.parametrize("cell", PARAMS)
 def test_cell_keeps_every_invariant(cell: fm.Cell, tmp_path: Path) -> None:
     obs = fm.run_cell(cell, tmp_path, size=256, step=90)
     assert obs.violations == [], f"{cell.name}: {obs.state} exit {obs.code}"

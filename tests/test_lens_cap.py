@@ -21,8 +21,9 @@ import pytest
 from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
-from m2s2hil.api import SessionManager, create_app
+from m2s2hil.api import create_app
 from m2s2hil.commands import capture as capture_cmd
+from m2s2hil.daemon.manager import SessionManager
 from m2s2hil.engine import build as build_mod
 from m2s2hil.engine.darks import LENS_CAP_REASON, LENS_UNCAP_REASON
 from m2s2hil.engine.state import IllegalTransition, RunState
@@ -198,7 +199,7 @@ def test_daemon_session_waits_and_the_lens_endpoint_continues_it(real_daemon):
     st = until(lambda: (s := status())["state"] in api_support.TERMINAL and s)
     assert st["state"] == "completed", st
     assert client.post(f"/sessions/{sid}/lens", json={"capped": True}).status_code == 409
-    with mgr.reading(sid) as store:
+    with mgr.reads.reading(sid) as store:
         order_ok(lens_and_captures(store))
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -61,3 +62,37 @@ def test_two_processes_compiling_one_tree_get_their_own_caches(tmp_path):
     assert again.returncode == 0, err
     name, value, hits = out.split()
     assert name == "slot-0" and float(value) == 999000.0 and int(hits) >= 1
+
+
+CLAIM = '''
+import os, sys
+sys.path.insert(0, {here!r})
+from numba_cache import use_private_numba_cache
+use_private_numba_cache(worker=sys.argv[1] == "worker")
+print(os.environ["NUMBA_CACHE_DIR"], flush=True)
+sys.stdin.read()  # hold the slot until the test lets go
+'''
+
+
+def _claim(role: str, env: dict[str, str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", CLAIM.format(here=str(HERE)), role], env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_xdist_workers_get_their_own_slots_under_a_cache_dir_given_from_outside(tmp_path):
+    """`pytest -n 2` with NUMBA_CACHE_DIR set (by CI, say): the workers inherit the same value, so
+    each claims a slot under it; a process that is no worker (a test's subprocess) keeps it as it is."""
+    given = tmp_path / "given"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(given)}
+    procs, dirs, errs = [], [], []
+    try:
+        for role in ("worker", "worker", "plain"):
+            procs.append(_claim(role, env))
+            dirs.append(procs[-1].stdout.readline().strip())  # claimed, and held, before the next starts
+        errs = [p.communicate(input="", timeout=60)[1] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert [p.returncode for p in procs] == [0, 0, 0], errs
+    assert dirs == [str(given / "slot-0"), str(given / "slot-1"), str(given)]

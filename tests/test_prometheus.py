@@ -2,7 +2,7 @@
 
 from prometheus_client.parser import text_string_to_metric_families
 
-from m2s2hil.api.prometheus import Metrics
+from m2s2hil.daemon.prometheus import Metrics
 from m2s2hil.engine.state import FaultInfo, FaultRecorded, FrameStored, RunState, SessionFinished
 
 

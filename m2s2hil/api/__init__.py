@@ -1,5 +1,8 @@
-"""The capture daemon's REST API (FastAPI): see :func:`create_app` and docs/api.md.
+"""The capture daemon's REST API (FastAPI) on top of the session service
+(:mod:`m2s2hil.daemon`): see :func:`create_app` and docs/api.md.
 
+``app.py`` assembles the application from the routers (``routes/``), the operator console's
+routes (``console/``), the error handlers (``handlers.py``) and the defences (``guards/``).
 Exports are loaded on first use so that ``m2s2hil --help`` does not import FastAPI.
 """
 
@@ -9,13 +12,12 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .app import create_app, openapi_json
-    from .manager import SessionManager
     from .settings import ServeSettings, load_serve_settings
 
-__all__ = ["ServeSettings", "SessionManager", "create_app", "load_serve_settings", "openapi_json"]
+__all__ = ["ServeSettings", "create_app", "load_serve_settings", "openapi_json"]
 
-_WHERE = {"create_app": "app", "openapi_json": "app", "SessionManager": "manager",
-          "ServeSettings": "settings", "load_serve_settings": "settings"}
+_WHERE = {"create_app": "app", "openapi_json": "app", "ServeSettings": "settings",
+          "load_serve_settings": "settings"}
 
 
 def __getattr__(name: str) -> Any:

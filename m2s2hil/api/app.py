@@ -1,7 +1,8 @@
 """The REST API: :func:`create_app` assembles the FastAPI application around a
-:class:`~m2s2hil.api.manager.SessionManager` from the routers (``routes_*.py``), the
-error handlers (``handlers.py``) and the middleware, outermost first: the Host allow-list
-(``hosts.py``), the cross-site guard (``csrf.py``), CORS when configured, the body limit.
+:class:`~m2s2hil.daemon.manager.SessionManager` from the routers (``routes/``, and the
+operator console's in ``console/``), the error handlers (``handlers.py``) and the
+middleware, outermost first: the Host allow-list (``guards/hosts.py``), the cross-site guard
+(``guards/csrf.py``), CORS when configured, the body limit.
 
 Status codes (every error body is ``{"detail": "<what and where>"}``; validation errors
 add ``errors``, one entry per problem):
@@ -10,7 +11,7 @@ add ``errors``, one entry per problem):
 202  ``POST /sessions``: accepted; ``Location`` and ``url`` name the new session
 400  a body that is not JSON (or not UTF-8, or a number too long to read)
 401  a token is configured and the request has none or a wrong one
-403  refused as a possible cross-site request (see csrf.py)
+403  refused as a possible cross-site request (see guards/csrf.py)
 404  no such session, or no such frame / file in it
 409  the session's state does not allow it (pause a queued or finished session,
      resume a running one, …), or the daemon is shutting down
@@ -38,37 +39,26 @@ from typing import Any
 from fastapi import APIRouter, Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
+from m2s2hil.daemon.manager import SessionManager
 from m2s2hil.store.folder import software_version
 
-from . import (
-    handlers,
-    routes_browser,
-    routes_calibration,
-    routes_console,
-    routes_daemon,
-    routes_frames,
-    routes_lens,
-    routes_live,
-    routes_manual,
-    routes_queue,
-    routes_rig,
-    routes_sessions,
-    routes_snapshots,
-)
+from . import handlers
 from .common import ERRORS, StrictJSONResponse, require_token
-from .csrf import HEADER, CrossSiteGuard
-from .hosts import HostAllowList
-from .manager import SessionManager
-from .security import BodyLimit
+from .console import browser, calibration, live, manual, page, snapshots
+from .guards.csrf import HEADER, CrossSiteGuard
+from .guards.hosts import HostAllowList
+from .guards.security import BodyLimit
+from .routes import daemon, frames, lens, queue, rig, sessions
+from .streams import StreamLimits, Streams
 
 API_TITLE = "m2s2hil capture daemon"
 
-GUARDED_ROUTERS: list[APIRouter] = [routes_sessions.router, routes_frames.router, routes_queue.router,
-                                    routes_rig.router, routes_daemon.router, routes_lens.router,
+GUARDED_ROUTERS: list[APIRouter] = [sessions.router, frames.router, queue.router, rig.router, daemon.router,
+                                    lens.router,
                                     # the operator console's (docs/console.md)
-                                    routes_manual.router, routes_live.router, routes_snapshots.router,
-                                    routes_calibration.router, routes_browser.router, routes_console.router]
-OPEN_ROUTERS: list[APIRouter] = [routes_daemon.open_router, routes_console.open_router]
+                                    manual.router, live.router, snapshots.router, calibration.router,
+                                    browser.router, page.router]
+OPEN_ROUTERS: list[APIRouter] = [daemon.open_router, page.open_router]
 
 
 def create_app(
@@ -81,6 +71,7 @@ def create_app(
     manage_lifecycle: bool = False,
     resume_interrupted: bool = False,
     shutdown_timeout_s: float = 120.0,
+    stream_limits: StreamLimits | None = None,
 ) -> FastAPI:
     """The application. ``manage_lifecycle``: start the manager on startup (resuming
     interrupted sessions if asked) and close it on shutdown (pause at a safe boundary,
@@ -114,6 +105,7 @@ def create_app(
     )
     app.state.manager = manager
     app.state.token = token
+    app.state.streams = Streams(stream_limits)  # live-view and SSE slots (streams.py)
     _document_catalog_names(app)
     for router in GUARDED_ROUTERS:
         app.include_router(router, dependencies=[Depends(require_token)], responses=ERRORS)

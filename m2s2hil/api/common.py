@@ -13,12 +13,12 @@ from fastapi import Depends, Header, HTTPException, Path, Query, Request
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from m2s2hil.daemon.errors import Conflict
+from m2s2hil.daemon.manager import SessionManager
 from m2s2hil.store.frame_files import dumps
 
 from . import models as m
-from .errors import Conflict
-from .manager import SessionManager
-from .security import token_matches
+from .guards.security import token_matches
 
 
 class StrictJSONResponse(JSONResponse):

@@ -13,15 +13,15 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from m2s2hil.atomic import DiskFull
+from m2s2hil.daemon.errors import Conflict, QueueFull, UnknownSession
 from m2s2hil.daemon.hold import HoldNotSaved
 from m2s2hil.engine.state import IllegalTransition
 from m2s2hil.errors import M2S2Error, UsageError
 from m2s2hil.store.errors import SessionCorrupt
 
 from .common import error_response
-from .csrf import flat_routes
-from .errors import Conflict, QueueFull, UnknownSession
-from .logsafe import clean_text
+from .guards.csrf import flat_routes
+from .guards.logsafe import clean_text
 
 log = logging.getLogger("m2s2hil.api")
 

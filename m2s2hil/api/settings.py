@@ -15,6 +15,9 @@ before. Example::
     allowed_hosts = []          # Host names besides 127.0.0.1, localhost, [::1] (e.g. "rig-pc.lab")
     max_body_bytes = 65536
     queue_limit = 16
+    max_live_viewers = 64       # live-view streams at once; more get 503 with Retry-After
+    max_sse_subscribers = 512   # event streams at once (the same)
+    header_timeout_s = 10.0     # a client must send its request headers within this (slowloris)
 """
 
 from __future__ import annotations
@@ -28,8 +31,8 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, f
 from m2s2hil.config import read_toml
 from m2s2hil.errors import ConfigError, validation_problem
 
-from .csrf import normalise_origin
-from .hosts import split_host
+from .guards.csrf import normalise_origin
+from .guards.hosts import split_host
 
 TOKEN_ENV = "M2S2HIL_TOKEN"
 DEFAULT_PORT = 8750
@@ -60,6 +63,17 @@ class ServeSettings(BaseModel):
     estop_grace_s: Annotated[float, Field(ge=0, le=60)] = 0.5
     estop_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     log_level: str = "info"
+    #: Streams served at once (beyond: 503 with Retry-After), and how long one send to a stream's
+    #: client may wait before the client counts as gone (m2s2hil.api.streams).
+    max_live_viewers: Annotated[int, Field(ge=1, le=1000)] = 64
+    max_sse_subscribers: Annotated[int, Field(ge=1, le=10_000)] = 512
+    stream_send_timeout_s: Annotated[float, Field(gt=0, le=600)] = 15.0
+    #: The server's limits (m2s2hil.api.http_server): time to send a request's headers, an idle
+    #: keep-alive connection's life, the headers' size, connections at once (beyond: 503).
+    header_timeout_s: Annotated[float, Field(gt=0, le=300)] = 10.0
+    keep_alive_s: Annotated[float, Field(gt=0, le=300)] = 5.0
+    max_header_bytes: Annotated[int, Field(ge=4096, le=1024 * 1024)] = 16 * 1024
+    max_connections: Annotated[int, Field(ge=16, le=100_000)] = 1000
 
     @field_validator("allowed_hosts")
     @classmethod

@@ -24,9 +24,8 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
+from m2s2hil.daemon.manager import SessionManager
 from m2s2hil.engine.state import SessionFinished
-
-from .manager import SessionManager
 
 POLL_S = 0.1
 
@@ -78,7 +77,7 @@ async def session_events(manager: SessionManager, session_id: str,
                 yield _msg("state", {"session_id": session_id, "new": job.final_state, "error": job.error})
                 return
             if not announced:
-                st = manager.status(session_id)
+                st = manager.reads.status(session_id)
                 yield _msg("queued", {"session_id": session_id, "position": st.get("queue_position")})
                 announced = True
             await asyncio.sleep(POLL_S)  # a client that leaves cancels this generator
@@ -106,7 +105,7 @@ async def session_events(manager: SessionManager, session_id: str,
 
 async def _journal_replay(manager: SessionManager, session_id: str,
                           cursor: Cursor | None) -> AsyncIterator[dict[str, Any]]:
-    state, events = await asyncio.to_thread(manager.journal_events, session_id)
+    state, events = await asyncio.to_thread(manager.reads.journal_events, session_id)
     start = cursor.seq if cursor is not None and cursor.run is None else 0
     for n, ev in enumerate(events, start=1):
         if n > start:

@@ -326,6 +326,7 @@ def capture(
 
     from m2s2hil.analysis.qc import capture_qc_hook
     from m2s2hil.engine.build import build_run, open_capture_rig
+    from m2s2hil.engine.state import RunState
 
     if resume is not None:  # a missing or damaged session is refused before any device moves
         from m2s2hil.store.session import SessionStore
@@ -339,6 +340,7 @@ def capture(
     else:
         _check_operator(config, sweep, set())
     opened = open_capture_rig(config, realtime=realtime, source=str(rig) if rig is not None else None)
+    stuck = False  # halted by a second Ctrl-C while its thread is still inside a device call
     try:
         if resume is not None:
             engine = build_run(opened, root, resume=resume, allow_rig_change=allow_rig_change,
@@ -349,8 +351,11 @@ def capture(
             engine = build_run(opened, root, sweep=sweep, qc=capture_qc_hook())
             console.print(f"session {engine.session_id} in {engine.store.path}")
         code = _run_engine(engine, virtual=opened.simulated and not realtime)  # open_rig's clock rule
-        engine.store.close()  # ended, parked or halted: the session's owner lock goes with the command
+        stuck = engine.alive and engine.state is RunState.ABORTING
+        if not stuck:  # ended or parked: the session's owner lock goes with the command
+            engine.store.close()
     finally:
         opened.safe()
-        opened.close()
+        if not stuck:  # else that call holds its device: closing would wait for it; the exit frees it
+            opened.close()
     raise typer.Exit(code)

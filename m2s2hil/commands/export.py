@@ -1,6 +1,8 @@
 """``m2s2hil export SESSION --layout m2s2|hf|zarr --out DIR [--root DATA_ROOT]``.
 
-Exporting only reads the session (opened read-only; nothing is recorded in it).
+Exporting only reads the session (opened read-only; nothing is recorded in it). The export is
+written beside ``--out`` and renamed into place, under a lock the daemon's exports share
+(m2s2hil.daemon.export_lock): a second export into the same folder stops at once (exit 1).
 
 Register with ``app.add_typer(export.app, name="export")`` (the command is the group's
 callback, so no sub-command name is needed) or ``app.command("export")(export.export_cmd)``.
@@ -12,9 +14,10 @@ from pathlib import Path
 
 import typer
 
+from m2s2hil.daemon.export_lock import export_once
 from m2s2hil.errors import UsageError
 from m2s2hil.store.catalogue import default_data_root
-from m2s2hil.store.export import LAYOUTS, export_session
+from m2s2hil.store.export import LAYOUTS
 from m2s2hil.store.layout import JOURNAL
 from m2s2hil.store.session import SessionStore
 
@@ -45,5 +48,5 @@ def export_cmd(
     if layout not in LAYOUTS:
         raise UsageError(f"--layout must be one of {', '.join(LAYOUTS)}, not {layout!r}")
     with open_session(session, root) as store:
-        res = export_session(store, out, layout, overwrite=overwrite)
+        res = export_once(store, out, layout, overwrite=overwrite)
     typer.echo(f"exported {res.images} image(s) of {session} as {layout} to {out} ({len(res.files)} files)")

@@ -61,10 +61,12 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     import uvicorn
 
     from m2s2hil.api.app import create_app
-    from m2s2hil.api.manager import SessionManager
-    from m2s2hil.api.rootlock import lock_data_root
-    from m2s2hil.api.security import check_listen
+    from m2s2hil.api.guards.security import check_listen
+    from m2s2hil.api.http_server import server_limits
+    from m2s2hil.api.streams import StreamLimits
     from m2s2hil.config import load_rig
+    from m2s2hil.daemon.manager import SessionManager
+    from m2s2hil.daemon.rootlock import lock_data_root
     from m2s2hil.engine.build import open_capture_rig
 
     level = settings.log_level.upper()
@@ -90,11 +92,17 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
             max_body_bytes=settings.max_body_bytes,
             manage_lifecycle=True, resume_interrupted=settings.resume_interrupted,
             shutdown_timeout_s=settings.shutdown_timeout_s,
+            stream_limits=StreamLimits(live_viewers=settings.max_live_viewers,
+                                       sse_subscribers=settings.max_sse_subscribers,
+                                       send_timeout_s=settings.stream_send_timeout_s),
         )
         server = _make_server(uvicorn.Config(
             app, host=settings.host, port=settings.port, log_config=None,
             log_level=settings.log_level.lower(), access_log=access_log, lifespan="on",
             timeout_graceful_shutdown=5,
+            **server_limits(header_timeout_s=settings.header_timeout_s, keep_alive_s=settings.keep_alive_s,
+                            max_header_bytes=settings.max_header_bytes,
+                            max_connections=settings.max_connections),
         ), manager)
         log.info("serving on http://%s:%d (data root %s, token %s)", settings.host, settings.port,
                  settings.data_root, "required" if token else "off")
@@ -141,6 +149,6 @@ app.command()(serve)
 
 
 if __name__ == "__main__":
-    from m2s2hil.cli import _run
+    from m2s2hil.commands.running import run_app
 
-    _run(app)
+    run_app(app)

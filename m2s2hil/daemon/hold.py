@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import threading
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -23,13 +25,12 @@ from pathlib import Path
 from m2s2hil.atomic import fsync_dir, write_text_atomic
 from m2s2hil.errors import M2S2Error
 
+from .errors import HoldNotSaved
+
+log = logging.getLogger(__name__)
+
 HOLD_NAME = ".m2s2hil-hold.json"
 _FORMAT = 1
-
-
-class HoldNotSaved(M2S2Error):
-    """The hold file could not be written or removed: the hold is in force in this process,
-    but its file on the data root does not say so (or still says held)."""
 
 
 @dataclass(frozen=True)
@@ -111,3 +112,65 @@ class HoldFile:
         problem = _printable(problem)
         return Hold(f"the hold file {self.path} is damaged ({problem}): held until released", since,
                     damaged=problem)
+
+
+class QueueHold:
+    """The queue's hold, in memory and in its file. Memory changes under the queue's condition
+    ``cond`` (the caller's), so a hold and the dispatcher's decision to start a session are one
+    locked step; the file follows (:meth:`save`) before the request that set it is answered.
+    Lock order: this object's file lock, then ``cond``."""
+
+    def __init__(self, root: str | Path, cond: threading.Condition) -> None:
+        self.file = HoldFile(root)
+        self._cond = cond
+        self._file_lock = threading.Lock()  # one writer of the file at a time
+        self.reason: str | None = None  # why the queue is held; None: not held
+        self.since: float | None = None
+        self._gen = 0  # counts holds set, so a release cannot clear one it did not see
+
+    def restore(self) -> None:
+        """Take over the hold a previous daemon left on the data root, and say so in one line."""
+        saved = self.file.load()
+        if saved is None:
+            return
+        with self._cond:
+            self.reason, self.since = saved.reason, saved.since
+            self._gen += 1
+        if saved.damaged:
+            log.error("rig HELD (fail safe): the hold file %s is damaged (%s); no session starts until "
+                      "an operator releases it (POST /queue/release)", self.file.path, saved.damaged)
+        else:
+            log.warning("rig HELD since %s: %s; no session starts until an operator releases it "
+                        "(POST /queue/release)", saved.since_iso, saved.reason)
+
+    def set_now(self, reason: str) -> None:
+        """Hold in memory at once (nothing is dispatched from here on); caller holds ``cond``
+        and calls :meth:`save` after letting it go."""
+        self.reason, self.since = reason, time.time()
+        self._gen += 1
+        self._cond.notify_all()
+
+    def save(self) -> None:
+        """Make the file say what memory says (:class:`HoldNotSaved` when it cannot). Serialised,
+        and memory is read once the file is ours: whatever order holds and releases come in,
+        the last writer is right."""
+        with self._file_lock:
+            with self._cond:
+                reason, since = self.reason, self.since
+            if reason is None:
+                self.file.clear()
+            else:
+                self.file.save(reason, since)
+
+    def release(self) -> str | None:
+        """Release; returns the reason it was held. The file goes first: when it cannot be
+        removed (:class:`HoldNotSaved`) the queue stays held."""
+        with self._file_lock:
+            with self._cond:
+                gen, was = self._gen, self.reason
+            self.file.clear()
+            with self._cond:
+                if self._gen == gen:  # no new hold (an emergency stop) came in meanwhile
+                    self.reason = self.since = None
+                    self._cond.notify_all()
+        return was

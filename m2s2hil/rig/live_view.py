@@ -9,16 +9,19 @@ gain and timestamps.
 
 :class:`LiveStream` runs one producer thread while at least one viewer is connected, so any
 number of browsers share one camera conversation; each viewer gets the newest frame when it is
-ready for one (a slow viewer skips frames instead of queueing them). Each grab goes through
+ready for one (a slow viewer skips frames instead of queueing them). A viewer on an event loop
+(the daemon's) waits with :meth:`LiveStream.aframes`, which holds no thread while it waits: the
+producer wakes it through its loop. Each grab goes through
 ``grab`` (a callable the daemon wraps with its device lock and its session check), so the live
 view never talks to the camera while a session owns it.
 """
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -138,6 +141,7 @@ class LiveStream:
         self._thread: threading.Thread | None = None
         self._seq = 0
         self._generation = 0  # bumped by every settings change
+        self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()  # aframes() viewers
         self.frames_produced = 0
 
     # -- settings ----------------------------------------------------------------------------
@@ -153,6 +157,15 @@ class LiveStream:
             self._generation += 1
             self._latest = None
             return self._settings
+
+    def _notify(self) -> None:
+        """Wake every viewer (the caller holds ``_cond``)."""
+        self._cond.notify_all()
+        for loop, event in list(self._waiters):
+            try:
+                loop.call_soon_threadsafe(event.set)
+            except RuntimeError:  # its loop has closed: that viewer is gone
+                self._waiters.discard((loop, event))
 
     @property
     def error(self) -> str | None:
@@ -194,13 +207,13 @@ class LiveStream:
             except LiveViewBusy as exc:
                 with self._cond:
                     self._error = str(exc)
-                    self._cond.notify_all()
+                    self._notify()
                 time.sleep(0.25)
                 continue
             except Exception as exc:  # a device error: shown to the viewers, retried
                 with self._cond:
                     self._error = f"{type(exc).__name__}: {exc}"
-                    self._cond.notify_all()
+                    self._notify()
                 time.sleep(0.5)
                 continue
             with self._cond:
@@ -215,7 +228,7 @@ class LiveStream:
                 self._latest = live
                 self._error = None
                 self.frames_produced += 1
-                self._cond.notify_all()
+                self._notify()
 
     def frames(self, *, max_frames: int | None = None, timeout_s: float = 10.0) -> Iterator[LiveFrame | str]:
         """Newest frames for one viewer, each at most once; a string when the camera is unavailable
@@ -250,6 +263,46 @@ class LiveStream:
         finally:
             with self._cond:
                 self._viewers -= 1
+                self._last_viewer = time.monotonic()
+
+    async def aframes(self, *, max_frames: int | None = None,
+                      timeout_s: float = 10.0) -> AsyncIterator[LiveFrame | str]:
+        """:meth:`frames` for a viewer on an event loop: it waits without a thread. The viewer counts
+        from its first step until the generator is closed (the daemon closes it when the
+        connection goes)."""
+        waiter = (asyncio.get_running_loop(), asyncio.Event())
+        with self._cond:
+            self._viewers += 1
+            self._waiters.add(waiter)
+            self._ensure_running()
+            last = self._latest.seq if self._latest is not None else 0
+        sent = 0
+        try:
+            while max_frames is None or sent < max_frames:
+                with self._cond:
+                    item: LiveFrame | str | None = None
+                    if self._latest is not None and self._latest.seq > last:
+                        item = self._latest
+                        last = self._latest.seq
+                    elif self._error is not None:
+                        item, self._error = self._error, None
+                    else:
+                        waiter[1].clear()  # under the lock: a frame after this sets it again
+                if item is None:
+                    try:
+                        await asyncio.wait_for(waiter[1].wait(), timeout_s)
+                    except TimeoutError:
+                        return
+                    continue
+                yield item
+                if isinstance(item, str):
+                    await asyncio.sleep(0.25)
+                else:
+                    sent += 1
+        finally:
+            with self._cond:
+                self._viewers -= 1
+                self._waiters.discard(waiter)
                 self._last_viewer = time.monotonic()
 
     def snapshot(self) -> LiveFrame | None:

@@ -25,7 +25,6 @@ from typing import Literal
 
 from m2s2hil.drivers.errors import (
     CameraError,
-    CommandRejected,
     DeviceError,
     DeviceGone,
     DeviceTimeout,
@@ -83,7 +82,12 @@ class RigOpenError(M2S2Error):
         super().__init__(f"{line}; hint: {self.hint}" if self.hint else line)
 
 
-def _errno_of(exc: BaseException | None) -> int | None:
+def detail_of(exc: BaseException) -> str:
+    """What a driver said went wrong: its ``detail`` when it has one, else its message."""
+    return getattr(exc, "detail", None) or str(exc)
+
+
+def errno_of(exc: BaseException | None) -> int | None:
     """The OS error number somewhere in the chain of ``exc`` (pyserial keeps it on its own
     SerialException, an IOError; pyusb on USBError.errno)."""
     seen = 0
@@ -97,7 +101,7 @@ def _errno_of(exc: BaseException | None) -> int | None:
 
 
 def _serial_cause(exc: BaseException) -> Cause | None:
-    code = _errno_of(exc)
+    code = errno_of(exc)
     text = str(exc).lower()
     if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO) or "no such file" in text:
         return "missing port"
@@ -121,9 +125,7 @@ def identify_port(url: str, baudrate: int, *, timeout_s: float = 0.5) -> str | N
     """
     import serial
 
-    # The registry's entries open their devices inside opening() (below): imported here, when a
-    # port is to be identified, so that this module stays below them.
-    from m2s2hil.rig.devices import KINDS
+    from m2s2hil.rig.devices import KINDS  # as in explain()
 
     signed = [(kind.title, kind.signature) for kind in KINDS.values() if kind.signature is not None]
     try:
@@ -150,21 +152,21 @@ def explain(exc: BaseException, *, device: str, port: str, protocol: str, baudra
     """The :class:`RigOpenError` for ``exc``, raised while ``device`` was being opened."""
     if isinstance(exc, RigOpenError):
         return exc
-    detail = getattr(exc, "detail", None) or str(exc)
-    if protocol == "u3v":
-        text = str(exc).lower()
-        if "no usb backend" in text or type(exc).__name__ == "NoBackendError":
-            return RigOpenError(device, port, "no USB backend", detail)
-        if _errno_of(exc) in (errno.EACCES, errno.EPERM) or "access denied" in text:
-            return RigOpenError(device, port, "permission denied", detail)
-        if isinstance(exc, DeviceGone) and "found" in text:
-            return RigOpenError(device, port, "no camera", detail)
-        return RigOpenError(device, port, "device error", detail)
+    # The registry's entries open their devices inside opening() (below): imported here, when
+    # an error is to be explained, so that this module stays below them.
+    from m2s2hil.rig.devices import KINDS
+
+    kind = KINDS.get(protocol)
+    if kind is not None and kind.explain is not None:  # what this kind's own errors mean, first
+        own = kind.explain(exc, device, port)
+        if own is not None:
+            return own
+    detail = detail_of(exc)
     if isinstance(exc, DeviceGone):
         cause = _serial_cause(exc)
         if cause is not None:
             # The OS's own words, not pyserial's nested repetition of the path.
-            code = _errno_of(exc)
+            code = errno_of(exc)
             if cause == "port busy":
                 detail = "another program holds an exclusive lock on it"
             elif code is not None:
@@ -172,13 +174,9 @@ def explain(exc: BaseException, *, device: str, port: str, protocol: str, baudra
             return RigOpenError(device, port, cause, detail)
     if isinstance(exc, StageAlarm):
         return RigOpenError(device, port, "alarm", detail)
-    if isinstance(exc, CommandRejected) and int(getattr(exc, "code", 0) or 0) == 5 and protocol == "grbl":
-        return RigOpenError(device, port, "homing disabled", detail)
     if isinstance(exc, DeviceTimeout | ProtocolError):
-        from m2s2hil.rig.devices import KINDS  # as in identify_port
-
         found = identify_port(port, baudrate) if identify else None
-        expected = KINDS[protocol].title if protocol in KINDS else protocol
+        expected = kind.title if kind is not None else protocol
         if found is not None and found != expected:
             return RigOpenError(device, port, "wrong device",
                                 f"a {found} device answers where the rig file expects {expected}")

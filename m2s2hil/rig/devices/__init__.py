@@ -1,12 +1,13 @@
 """The device kinds a rig can have, one entry each: the one place a kind is described.
 
 A kind's entry (a module of this package) holds its driver and simulator factories, what
-``m2s2hil rig probe`` reads from it, how it is recognised on another device's port, and
-(read from the simulators) its fault kinds; its rig-file rules (role, axis names) are
-``config.PROTOCOLS``. Adding a device kind: its codec (``protocols/``), driver (``drivers/``),
-simulator (``simulators/``, with its faults in ``fault_injection.FAULT_KINDS_BY_DEVICE``), its
-protocol name in ``config.DeviceProtocol``/``PROTOCOLS``, and a module here listed in
-:data:`KINDS`; tests/test_rig_devices.py checks that they agree.
+``m2s2hil rig probe`` reads from it, how it is recognised on another device's port, what its
+errors mean while it opens, and (read from the simulators) its fault kinds; its rig-file
+rules (role, axis names) are ``config.PROTOCOLS``, below the rig. Adding a device kind: its
+codec (``protocols/``), driver (``drivers/``), simulator (``simulators/``, with its faults in
+``fault_injection.FAULT_KINDS_BY_DEVICE``), its protocol name in ``config.DeviceProtocol`` and
+``PROTOCOLS``, and a module here listed in :data:`KINDS`; tests/test_rig_devices.py checks
+that they agree.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ from m2s2hil.drivers.interfaces import RotaryAxis
 from m2s2hil.errors import ConfigError
 from m2s2hil.rig.devices.findings import REL_TOL, Finding, ProbeReport, agree, num
 from m2s2hil.rig.devices.kind import MotionKind, Setup, Signature, SimParts, close_quietly, connect_or_close
-from m2s2hil.rig.open_errors import opening
+from m2s2hil.rig.open_errors import RigOpenError, detail_of, opening
 
 
 def _simulator(setup: Setup, parts: SimParts) -> Any:
@@ -70,6 +70,16 @@ def _open_axes(setup: Setup) -> tuple[Any, dict[str, RotaryAxis]]:
 
 def _home(ctl: Any, switched: Mapping[str, Any]) -> None:
     ctl.home()  # one $H homes every axis with switches
+
+
+def _explain(exc: BaseException, device: str, port: str) -> RigOpenError | None:
+    """``$H`` answered error:5 (homing not enabled, GRBL v1.1 wiki "Grbl v1.1 Error Codes"):
+    the rig file says switches, the controller has ``$22=0``."""
+    from m2s2hil.drivers.errors import CommandRejected
+
+    if isinstance(exc, CommandRejected) and int(getattr(exc, "code", 0) or 0) == 5:
+        return RigOpenError(device, port, "homing disabled", detail_of(exc))
+    return None
 
 
 def _expected(config: RigConfig, device: str) -> dict[int, tuple[float, str, str]]:
@@ -181,6 +191,7 @@ KIND = MotionKind(
     open_axes=_open_axes,
     home=_home,
     probe=_probe,
+    explain=_explain,
     # A soft reset (0x18) is answered with the ``Grbl 1.1h ['$' for help]`` banner; any line
     # GRBL sends (ok, error:N, ALARM:N, [VER:...]) gives it away too.
     signature=Signature(b"\x18", re.compile(rb"Grbl |\[VER:|^(ok|error:\d+|ALARM:\d+)\r?$", re.M)),

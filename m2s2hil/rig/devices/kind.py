@@ -1,10 +1,11 @@
 """What a registry entry holds: one device kind (a rig file's protocol, or the U3V camera).
 
 An entry says everything the application needs about a kind beyond its codec, driver and
-simulator: its role, how its simulator and driver are made from the rig file, what
-``m2s2hil rig probe`` reads from it, how it is recognised when it answers on another
-device's port, and (read from the simulators, which declare them) its fault kinds. The
-rig factory, the probe and :mod:`m2s2hil.rig.open_errors` ask the registry
+simulator: its role (from the rig file's rules, ``config.PROTOCOLS``), how its simulator and
+driver are made from the rig file, what ``m2s2hil rig probe`` reads from it, how it is
+recognised when it answers on another device's port and what its driver's errors mean while
+it opens, and (read from the simulators, which declare them) its fault kinds. The rig
+factory, the probe and :mod:`m2s2hil.rig.open_errors` ask the registry
 (:mod:`m2s2hil.rig.devices`) and hold no per-protocol branches.
 """
 
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from m2s2hil.config import PROTOCOLS, AxisConfig, DeviceConfig, RigConfig
 from m2s2hil.drivers.clock import Clock
+from m2s2hil.rig.open_errors import RigOpenError
 from m2s2hil.simulators.fault_injection import FAULT_KINDS_BY_DEVICE
 
 if TYPE_CHECKING:
@@ -84,6 +86,9 @@ class DeviceKind:
     #: write the rig file's settings first, where the kind can).
     probe: Callable[[Setup, ProbeReport, bool], None]
     signature: Signature | None = None
+    #: What an error of this kind's driver means while it opens, before the generic reading of
+    #: :func:`~m2s2hil.rig.open_errors.explain`: ``explain(exc, device, port)``, None to leave it.
+    explain: Callable[[BaseException, str, str], RigOpenError | None] | None = None
 
     @property
     def role(self) -> Role:

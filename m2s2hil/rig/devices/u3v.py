@@ -7,11 +7,13 @@ vendor, product and serial, not on a serial port.
 
 from __future__ import annotations
 
+import errno
 from typing import TYPE_CHECKING, Any
 
+from m2s2hil.drivers.errors import DeviceGone
 from m2s2hil.rig.devices.findings import Finding, ProbeReport
 from m2s2hil.rig.devices.kind import CameraKind, Setup, SimParts, close_quietly
-from m2s2hil.rig.open_errors import opening
+from m2s2hil.rig.open_errors import RigOpenError, detail_of, errno_of, opening
 from m2s2hil.sim_config import camera_sim_name, is_simulated
 
 if TYPE_CHECKING:
@@ -59,6 +61,20 @@ def _open_camera(setup: Setup) -> U3VCamera:
                               name=setup.name)
 
 
+def _explain(exc: BaseException, device: str, port: str) -> RigOpenError:
+    """A camera that did not open: libusb missing, no permission (the udev rule), no camera on
+    USB, or an error of the camera itself. Never a serial port's causes."""
+    text = str(exc).lower()
+    detail = detail_of(exc)
+    if "no usb backend" in text or type(exc).__name__ == "NoBackendError":
+        return RigOpenError(device, port, "no USB backend", detail)
+    if errno_of(exc) in (errno.EACCES, errno.EPERM) or "access denied" in text:
+        return RigOpenError(device, port, "permission denied", detail)
+    if isinstance(exc, DeviceGone) and "found" in text:
+        return RigOpenError(device, port, "no camera", detail)
+    return RigOpenError(device, port, "device error", detail)
+
+
 def _probe(setup: Setup, report: ProbeReport, apply: bool) -> None:
     from m2s2hil.protocols.u3v_bootstrap import ABRM
 
@@ -98,4 +114,5 @@ KIND = CameraKind(
     make_simulator=_simulator,
     open_camera=_open_camera,
     probe=_probe,
+    explain=_explain,
 )

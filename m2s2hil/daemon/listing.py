@@ -1,0 +1,139 @@
+"""What the API lists and serves from the session store on disk: sessions, frames, frame
+files and a journal replayed as events. Functions here read; they change nothing."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from m2s2hil.drivers.clock import Clock
+from m2s2hil.store.catalogue import list_sessions
+from m2s2hil.store.errors import SessionCorrupt, SessionNotFound
+from m2s2hil.store.records import frame_record
+from m2s2hil.store.session import SessionStore
+
+from .errors import Conflict, UnknownSession
+from .jobqueue import Job
+
+
+def open_store(root: Path, session_id: str, clock: Clock,
+               mode: Literal["read", "write"] = "read") -> SessionStore:
+    """Open a stored session (the caller closes it); :class:`UnknownSession` when there is none."""
+    try:
+        return SessionStore.open(root, session_id, clock=clock, mode=mode)
+    except SessionNotFound:
+        raise UnknownSession(f"no session {session_id!r}") from None
+
+
+@contextlib.contextmanager
+def stored(root: Path, session_id: str, clock: Clock) -> Iterator[SessionStore]:
+    """A stored session opened for one request; :class:`Conflict` when it cannot be read."""
+    try:
+        store = open_store(root, session_id, clock)
+    except SessionCorrupt as exc:
+        raise Conflict(f"session {session_id} cannot be read: {exc}") from None
+    try:
+        yield store
+    finally:
+        store.close()
+
+
+class PlannedCounts:
+    """Events each session's plan holds, expanded once per session (plans do not change)."""
+
+    def __init__(self) -> None:
+        self._n: dict[str, int] = {}
+
+    def set(self, session_id: str, n: int) -> None:
+        self._n[session_id] = n
+
+    def of(self, store: SessionStore) -> int:
+        sid = store.session_id
+        n = self._n.get(sid)
+        if n is None:
+            n = len(store.sweep.expand(store.rig))
+            self._n[sid] = n
+        return n
+
+
+def session_rows(root: Path, jobs: Mapping[str, Job], *, state: str | None = None,
+                 satellite: str | None = None, build: str | None = None) -> list[dict]:
+    """Sessions under the data root, newest first, filtered; the state of a session this daemon
+    runs or queues is the live one."""
+    rows: list[dict] = []
+    for info in list_sessions(root):
+        job = jobs.get(info.session_id)
+        st = (job.live_state() if job is not None else None) or info.state  # as its status says
+        rows.append({"session_id": info.session_id, "state": st, "satellite": info.satellite,
+                     "build": info.build, "created": info.created, "updated": info.updated,
+                     "frames": info.frames, "error": info.error})
+    if state:
+        rows = [r for r in rows if r["state"] == state]
+    if satellite:
+        rows = [r for r in rows if (r["satellite"] or "").lower() == satellite.lower()]
+    if build:
+        rows = [r for r in rows if (r["build"] or "").lower() == build.lower()]
+    return rows
+
+
+def frame_page(store: SessionStore, *, offset: int = 0, limit: int = 50) -> tuple[list[Any], int]:
+    """One page of the session's frame records in plan order, and how many there are."""
+    total = store.journal.query("SELECT COUNT(*) AS n FROM frames")[0]["n"]
+    rows = store.journal.query("SELECT * FROM frames ORDER BY idx LIMIT ? OFFSET ?", (limit, offset))
+    return [frame_record(r) for r in rows], int(total)
+
+
+def frame_bytes(store: SessionStore, session_id: str, n: int,
+                role: Literal["raw", "preview"]) -> tuple[bytes, str]:
+    """The checked bytes of frame ``n``'s raw or preview file, and its path in the session."""
+    rows = store.journal.query("SELECT * FROM frames WHERE idx = ?", (n,))
+    if not rows:
+        raise UnknownSession(f"session {session_id} has no frame {n} (frames are numbered by their "
+                             "index in the plan; GET /sessions/{id}/frames lists them)")
+    rec = frame_record(rows[0])
+    f = rec.files.get(role)
+    if f is None:
+        raise UnknownSession(f"frame {n} of session {session_id} has no {role} file")
+    base = store.path.resolve()
+    if not (base / f.path).resolve().is_relative_to(base):
+        raise SessionCorrupt(f"journal of {session_id} names a file outside its folder")
+    return store.read_file(f, check=True), f.path
+
+
+def journal_events(store: SessionStore) -> tuple[str, list[dict]]:
+    """(state, events) replayed from the journal, in time order (frames before other events
+    of the same instant)."""
+    items: list[tuple[float, int, str, dict]] = []
+    for r in store.journal.query("SELECT * FROM frames ORDER BY seq"):
+        meta = json.loads(r["meta"])
+        ev = meta.get("event") or {}
+        files = json.loads(r["files"])
+        items.append((r["time"], 0, "frame", {
+            "event_id": r["event_id"], "index": r["idx"], "lighting": ev.get("lighting"),
+            "elevation": ev.get("elevation"), "azimuth_deg": ev.get("nominal_azimuth_deg"),
+            "exposure_s": meta.get("exposure_s"), "path": (files.get("raw") or {}).get("path"),
+        }))
+    for e in store.events():
+        p = e.get("payload") or {}
+        if e["kind"] == "fault":
+            items.append((e["time"], 1, "fault", {"fault": p}))
+        elif e["kind"] in ("run_started", "resumed"):
+            items.append((e["time"], 1, "state", {"new": "running", "reason": e["kind"]}))
+        elif e["kind"] in ("interrupted", "cancelled", "aborted", "run_finished"):
+            state = p.get("state") or e["kind"]
+            items.append((e["time"], 1, "finished" if e["kind"] == "run_finished" else "state",
+                          {"new": state, **({"summary": p} if e["kind"] == "run_finished" else p)}))
+    items.sort(key=lambda t: (t[0], t[1]))
+    return store.state, [{"kind": k, "wall": t, **d} for t, _, k, d in items]
+
+
+
+def interrupted_sessions(root: Path) -> list[str]:
+    """The sessions a daemon start resumes, in order: those that were running, then those that
+    were waiting, oldest first in each."""
+    infos = list(reversed(list_sessions(root)))  # oldest first
+    first = [i.session_id for i in infos if i.state in ("running", "pausing", "interrupted")]
+    return first + [i.session_id for i in infos if i.state in ("created", "queued")]
