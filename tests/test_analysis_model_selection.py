@@ -37,6 +37,7 @@ def test_simulated_frames_come_with_ground_truth(frames):
     assert visible_materials(np.zeros((4, 4), int)) == 0
 
 
+@pytest.mark.slow  # ~4 s
 def test_default_finds_the_materials_the_old_setting_over_split(frames):
     for f in (frames[0], frames[2]):
         v = visible_materials(f.gt)

@@ -220,6 +220,7 @@ def test_spectral_single_band_is_its_foreground() -> None:
     assert ((labels > 0) == (gt > 0)).mean() > 0.99
 
 
+@pytest.mark.slow  # ~5 s
 def test_blas_thread_limit_does_not_change_the_result() -> None:
     cube, _ = synthetic_scene((32, 32), 3, seed=5)
     a = SpectralSegmenter(blas_threads=1).segment(cube)

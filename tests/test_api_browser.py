@@ -21,7 +21,7 @@ from api_support import daemon, free_port, sweep, uvicorn_thread
 
 from m2s2hil.api.guards.csrf import STATE_CHANGING
 
-pytestmark = pytest.mark.slow  # a browser and two servers: about 10 s
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]  # a browser and two servers: about 10 s
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",

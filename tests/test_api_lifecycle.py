@@ -16,6 +16,8 @@ from m2s2hil.rig.open_errors import EXIT_UNREACHABLE
 from m2s2hil.store.session import SessionStore
 
 
+@pytest.mark.slow  # two daemon processes in real time: ~25 s
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_sigterm_parks_safely_and_a_restart_resumes_to_exactly_the_plan(tmp_path) -> None:
     rig = quick_rig_file(tmp_path)
     sweep = {"satellite": "iss", "build": "B2", "lighting": ["weak"], "tilts": ["E1"], "azimuth_step_deg": 60,
@@ -78,6 +80,7 @@ def test_one_daemon_per_data_root(tmp_path) -> None:
     lock_data_root(tmp_path / "data").close()  # free again once the first one let go
 
 
+@pytest.mark.slow  # a daemon process: ~4 s
 def test_serve_says_which_device_it_cannot_open(tmp_path) -> None:
     text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
     rig = tmp_path / "rig.toml"

@@ -41,6 +41,7 @@ def test_rig_state_when_idle(tmp_path) -> None:
         assert dev["camera"]["state"]["width"] == 256 and dev["camera"]["state"]["temperature_c"] > 0
 
 
+@pytest.mark.slow  # ~3-4 s each
 @pytest.mark.parametrize("grace_s", [0.5, 0.0], ids=["engine-teardown", "stop-from-request"])
 def test_emergency_stop_during_a_session_leaves_lamps_off_and_stage_stopped(tmp_path, grace_s) -> None:
     # grace 0: the request thread stops the axes itself while the engine is still mid-capture

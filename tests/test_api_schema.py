@@ -76,6 +76,7 @@ def _failures(app, token: str | None) -> tuple[list[str], dict[str, int]]:
 
 
 @pytest.mark.slow  # about 15 s each
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 @pytest.mark.parametrize("token", [None, TOKEN], ids=["no-token", "token"])
 def test_schemathesis_all_checks_and_stateful_find_nothing(tmp_path, token) -> None:
     with daemon(tmp_path / "data", token=token, rig_config=small_rig_config(64), max_plan_frames=24,

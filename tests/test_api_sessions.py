@@ -68,6 +68,7 @@ def test_create_run_and_read_back(d) -> None:
     assert disk["live"] is False and disk["state"] == "completed" and disk["done"] == 5
 
 
+@pytest.mark.slow  # ~2 s
 def test_list_filter_and_paginate(d) -> None:
     ids = []
     for sat, build in (("voyager", "B3"), ("iss", "B1"), ("voyager", "B1")):
@@ -152,6 +153,8 @@ def test_pause_resume_abort_a_running_session(d) -> None:
     assert r.status_code == 409 and "aborted" in r.json()["detail"]
 
 
+@pytest.mark.slow  # ~23 s
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_resume_an_interrupted_session_from_disk(tmp_path) -> None:
     root = tmp_path / "data"
     with daemon(root) as d:

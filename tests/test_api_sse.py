@@ -47,6 +47,8 @@ def test_events_of_a_session_in_order(tmp_path) -> None:
         assert d.client.get("/sessions/nope/events").status_code == 404
 
 
+@pytest.mark.slow  # a real socket, a long session: ~22 s
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_live_stream_over_a_socket_resumes_without_loss_or_duplicates(tmp_path) -> None:
     with daemon(tmp_path / "data") as d:
         d.manager.hold("test")

@@ -19,7 +19,7 @@ from browser_support import browser, start_session_from_form
 
 from m2s2hil.api import create_app
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]  # a browser and a daemon
 
 
 def shots_dir(tmp_path: Path) -> Path:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import time
 
+import pytest
 from api_support import daemon
 from fastapi.testclient import TestClient
 from rig_files import write_rig
@@ -64,6 +65,7 @@ def test_origin_from_the_console_on_a_factory_grbl(tmp_path) -> None:
             rig.close()
 
 
+@pytest.mark.slow  # homing in real time: ~3 s
 def test_builtin_rig_homes_and_refuses_an_origin(tmp_path) -> None:
     with daemon(tmp_path / "data") as d:
         axes = d.client.get("/rig/axes").json()["axes"]

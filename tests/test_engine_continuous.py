@@ -16,6 +16,7 @@ def _passes(store) -> list[dict]:
     return [e["payload"] for e in store.events() if e["kind"] == "continuous_pass"]
 
 
+@pytest.mark.slow  # ~2 s
 def test_frames_are_matched_to_the_marks_and_blur_is_reported(tmp_path) -> None:
     sweep = small_sweep(mode="continuous", azimuth_step_deg=90)
     with session(tmp_path, sweep, speed_dps=SPEED) as s:
@@ -50,6 +51,7 @@ def test_frames_are_matched_to_the_marks_and_blur_is_reported(tmp_path) -> None:
         assert_rig_safe(s.rig)
 
 
+@pytest.mark.slow  # ~3 s
 def test_pause_mid_revolution_stops_the_turntable_and_resume_finishes_the_marks(tmp_path) -> None:
     sweep = small_sweep(mode="continuous", azimuth_step_deg=30)
     with session(tmp_path, sweep, speed_dps=SPEED) as s:
@@ -77,6 +79,7 @@ def test_pause_mid_revolution_stops_the_turntable_and_resume_finishes_the_marks(
         S.RUNNING, S.PAUSING, S.PAUSED, S.RUNNING, S.COMPLETED]
 
 
+@pytest.mark.slow  # ~2 s
 def test_a_lost_stream_frame_at_a_mark_is_retried(tmp_path) -> None:
     """A frame dropped in the camera right at a mark: the pass reports it, the mark is redone."""
     sweep = small_sweep(mode="continuous", azimuth_step_deg=90)

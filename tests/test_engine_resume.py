@@ -10,6 +10,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import pytest
 from engine_helpers import assert_rig_safe, small_rig_config, small_sweep
 
 from m2s2hil.engine.build import build_run
@@ -47,6 +48,7 @@ CHILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # a child process killed mid-session: ~2 s
 def test_kill_9_mid_session_then_resume_loses_and_duplicates_nothing(tmp_path) -> None:
     root = tmp_path / "data"
     child = subprocess.Popen(

@@ -117,6 +117,7 @@ def test_report_files(evaluated):
     assert {p["segmenter"] for p in summary["speed_accuracy"]} == {"spectral", "rgb"}
 
 
+@pytest.mark.slow  # starts a local Dask cluster
 def test_local_dask_cluster_gives_the_same_records(session, evaluated):
     jobs, res, _, _ = evaluated
     dres = evaluate_jobs(jobs[:3], EvalOptions(), workers=2, processes=False)
@@ -127,6 +128,7 @@ def test_local_dask_cluster_gives_the_same_records(session, evaluated):
         assert a["results"]["rgb"]["recall"] == b["results"]["rgb"]["recall"]
 
 
+@pytest.mark.slow  # starts a Dask scheduler
 def test_existing_scheduler_over_tcp(evaluated):
     from distributed import LocalCluster
 

@@ -6,10 +6,13 @@ import csv
 import io
 
 import cv2
+import pytest
 
 from m2s2hil.analysis.study.stability import SCENARIOS, stability_study
 
 
+@pytest.mark.slow  # a capture and an evaluation per scenario: ~15 s
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_stability_study_small(tmp_path):
     chosen = {k: SCENARIOS[k] for k in ("diffuse", "low light (0.2 ms)", "saturation (50 ms)")}
     rows = stability_study(

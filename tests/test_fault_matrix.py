@@ -22,8 +22,10 @@ CELLS = (
 )
 
 
-# a kill cell starts a child interpreter that captures until it kills itself: seconds each
-PARAMS = [pytest.param(c, id=c.name, marks=[pytest.mark.slow] if c.group == "kill" else []) for c in CELLS]
+# A kill cell starts a child interpreter that captures until it kills itself: seconds each
+# (the child's own limit is 300 s).
+KILL_MARKS = [pytest.mark.slow, pytest.mark.timeout(600)]
+PARAMS = [pytest.param(c, id=c.name, marks=KILL_MARKS if c.group == "kill" else []) for c in CELLS]
 
 
 @pytest.mark.parametrize("cell", PARAMS)

@@ -147,6 +147,7 @@ def test_state_file_round_trip_and_a_broken_one_is_a_clear_error(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_capture_completes_on_a_factory_grbl_over_a_pty(factory_grbl, tmp_path):
     """The issue's acceptance: `rig origin` for both axes, then `capture --rig` with no homing."""
     _srv, rig_file = factory_grbl

@@ -287,6 +287,7 @@ def test_dark_needed_mid_unit_is_capped_and_the_unit_captured_again(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_console_shows_the_wait_and_confirms_the_lens(tmp_path):
     """The console's Sessions view: the pause reason and one button per confirmation."""
     from browser_support import browser, start_session_from_form

@@ -67,6 +67,7 @@ def served() -> Iterator[Callable[..., tuple[GrblSimulator, Recorder]]]:
         srv.close()
 
 
+@pytest.mark.slow  # ~2 s in real time
 def test_factory_controller_connects_streams_and_refuses_homing(served):
     sim, host = served()
     assert host.state == State.IDLE

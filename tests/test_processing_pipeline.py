@@ -18,6 +18,7 @@ CAM = CameraModel(width=64, height=48)
 LAYOUT = MosaicLayout.from_camera(CAM)
 
 
+@pytest.mark.timeout(600)  # compiles the kernels on a cold numba cache (CI): minutes under load
 def test_frame_processor_is_dark_then_demosaic():
     rng = np.random.default_rng(0)
     dark = build_master_dark(
@@ -101,6 +102,7 @@ def test_ground_truth_spectra_reach_the_near_infrared():
     assert scene.cube.min() >= 0
 
 
+@pytest.mark.timeout(600)  # compiles the kernels on a cold numba cache (CI): minutes under load
 def test_bench_command_prints_the_table_and_writes_the_chart(tmp_path):
     from importlib import resources
 

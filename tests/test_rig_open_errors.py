@@ -188,6 +188,7 @@ def test_permission_denied(tmp_path):
     assert "dialout" in text and path in text
 
 
+@pytest.mark.slow  # waits out the reply timeouts: ~2 s
 def test_nothing_answers(tmp_path):
     """A port that exists but where nothing listens (a powered-off controller)."""
     import tty

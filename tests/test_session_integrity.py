@@ -59,6 +59,7 @@ def _m2s2hil(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
 
 # -- F1: reading never changes a session; only the lock holder cleans --------------------------
 
+@pytest.mark.slow  # a writer process: ~4 s
 def test_readers_leave_a_live_writers_temporary_files_alone(tmp_path) -> None:
     root = _completed(tmp_path)
     writer = SessionStore.open(root, "s1", mode="write")

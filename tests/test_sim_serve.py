@@ -2,6 +2,7 @@
 
 import tomllib
 
+import pytest
 import serial
 
 from m2s2hil.config import parse_rig
@@ -21,6 +22,7 @@ def test_plain_pyserial_talks_grbl_on_the_pty():
         port.close()
 
 
+@pytest.mark.slow  # moves over ptys in real time: ~2 s
 def test_generated_rig_file_drives_the_pty_devices(tmp_path):
     with SimServer() as srv:
         text = srv.rig_toml()
@@ -34,7 +36,7 @@ def test_generated_rig_file_drives_the_pty_devices(tmp_path):
             assert not rig.simulated
             rig.lights.set(cfg.lamp_channels("weak"))
             assert srv.world.lamps_on() == frozenset(cfg.lamp_channels("weak"))
-            assert rig.tilt.move_to(2.0) == pytest_approx(2.0, rig.config.axes["tilt"].tolerance_deg)
+            assert rig.tilt.move_to(2.0) == pytest.approx(2.0, abs=rig.config.axes["tilt"].tolerance_deg)
             assert abs(srv.world.pose().tilt_deg - 2.0) <= rig.config.axes["tilt"].tolerance_deg
             # The camera is simulated here, the stage is not: the camera's world follows
             # the pty stage through the driver's read-back.
@@ -47,12 +49,6 @@ def test_generated_rig_file_drives_the_pty_devices(tmp_path):
             rig.safe()
             rig.close()
         assert srv.world.lamps_on() == frozenset()
-
-
-def pytest_approx(value: float, tol: float):
-    import pytest
-
-    return pytest.approx(value, abs=tol)
 
 
 def test_generated_rig_file_keeps_everything_but_the_ports(tmp_path):

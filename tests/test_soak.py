@@ -84,6 +84,10 @@ def test_a_frame_stored_while_held_is_a_violation(tmp_path: Path) -> None:
 
 
 def test_growing_descriptors_are_not_flat() -> None:
-    samples = [Sample(0, float(i), 400_000, 20 + i, 8, idle=True) for i in range(20)]
-    (f,) = flatness(samples)
+    leaking = [Sample(0, float(i), 400_000, 20 + i, 20 + i, 0, 8, idle=True) for i in range(20)]
+    (f,) = flatness(leaking)
     assert not f.ok and f.fds_last > f.fds_first
+    kept = [Sample(0, float(i), 400_000, 20 + 4 * i, 20, i, 8, idle=True) for i in range(20)]
+    assert flatness(kept)[0].ok  # finished sessions' journals the daemon keeps open, within its bound
+    too_many = [Sample(0, float(i), 400_000, 20 + 4 * i, 20, 2 * i, 8, idle=True) for i in range(20)]
+    assert not flatness(too_many)[0].ok

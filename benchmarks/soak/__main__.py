@@ -4,6 +4,7 @@ docs/reliability.md between the soak's markers. Exit 1 when an invariant broke."
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import tempfile
 from pathlib import Path
@@ -36,9 +37,11 @@ def main() -> int:
     ap.add_argument("--markdown", type=Path, help="write the tables to this file")
     ap.add_argument("--write", type=Path, help="put the tables into this page between the soak markers")
     a = ap.parse_args()
+    # SIGTERM ends the soak through its clean-up (the daemon it started is killed too)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     cfg = SoakConfig(sim_s=a.sim_s, kills=a.kills, seed=a.seed, size=a.size, full_step_deg=a.full_step)
     with tempfile.TemporaryDirectory(prefix="m2s2hil-soak-") as tmp:
-        result = run_soak(cfg, a.work or Path(tmp))
+        result = run_soak(cfg, a.work or Path(tmp), progress=True)
     table = markdown(result)
     print(table)
     if a.markdown:

@@ -22,6 +22,10 @@ FILE_FOLDERS = ("frames", "darks")
 #: How much the daemon may grow across the run, idle against idle, before it counts as a leak.
 RSS_SLACK = (1.25, 24 * 1024)  # factor, plus KiB
 FD_SLACK = 4
+#: The daemon keeps the last 32 finished sessions open for reading (SessionManager's
+#: ``keep_finished``), besides the running and the queued ones: their journals are not a leak,
+#: more than that would be.
+KEPT_FINISHED = 32
 
 
 @dataclass(frozen=True)
@@ -186,25 +190,29 @@ class Flatness:
     samples: int
     rss_first_kib: float
     rss_last_kib: float
-    fds_first: int
+    fds_first: int  # descriptors besides the session journals
     fds_last: int
+    journals_max: int  # session journals open at most, at any sample
     ok: bool
 
 
 def flatness(samples: list[Sample], min_samples: int = 6) -> list[Flatness]:
     """Per daemon incarnation with enough idle samples: the last quarter of its idle samples
     against the first quarter after its warm-up (the first fifth). Idle: no session running and
-    none of the soak's streams or exports open, so growth is what was left behind."""
+    none of the soak's streams or exports open, so growth is what was left behind. The session
+    journals the daemon keeps open are judged apart: never more than it keeps by design."""
     out: list[Flatness] = []
     for inc in sorted({s.incarnation for s in samples}):
-        idle = [s for s in samples if s.incarnation == inc and s.idle]
+        mine = [s for s in samples if s.incarnation == inc]
+        idle = [s for s in mine if s.idle]
         idle = idle[len(idle) // 5:]
         if len(idle) < min_samples:
             continue
         q = max(1, len(idle) // 4)
         first, last = idle[:q], idle[-q:]
         rss0, rss1 = statistics.median(s.rss_kib for s in first), statistics.median(s.rss_kib for s in last)
-        fd0, fd1 = min(s.fds for s in first), max(s.fds for s in last)
-        ok = rss1 <= rss0 * RSS_SLACK[0] + RSS_SLACK[1] and fd1 <= fd0 + FD_SLACK
-        out.append(Flatness(inc, len(idle), rss0, rss1, fd0, fd1, ok))
+        fd0, fd1 = min(s.other_fds for s in first), max(s.other_fds for s in last)
+        journals_ok = all(s.journals <= KEPT_FINISHED + 1 + s.waiting for s in mine)
+        ok = rss1 <= rss0 * RSS_SLACK[0] + RSS_SLACK[1] and fd1 <= fd0 + FD_SLACK and journals_ok
+        out.append(Flatness(inc, len(idle), rss0, rss1, fd0, fd1, max(s.journals for s in mine), ok))
     return out

@@ -3,6 +3,7 @@ the HTTP client the soak talks to it with, and what /proc says about the process
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -56,19 +57,40 @@ class Sample:
     wall_s: float  # since the soak started
     rss_kib: int
     fds: int
+    other_fds: int  # descriptors that are not a session journal's (SQLite's file, -wal, -shm)
+    journals: int  # sessions whose journal the daemon holds open
     threads: int
     idle: bool  # no session running, no stream or export of ours open
+    waiting: int = 0  # sessions queued at the time
 
 
-def proc_sample(pid: int) -> tuple[int, int, int] | None:
-    """(RSS KiB, open file descriptors, threads) of ``pid`` from /proc; None once it is gone."""
+@dataclass(frozen=True)
+class ProcFigures:
+    rss_kib: int
+    fds: int
+    other_fds: int
+    journals: int
+    threads: int
+
+
+def proc_sample(pid: int) -> ProcFigures | None:
+    """RSS, open file descriptors (and how many session journals they hold open), threads of
+    ``pid`` from /proc; None once it is gone."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
-        fds = len(os.listdir(f"/proc/{pid}/fd"))
+        names = os.listdir(f"/proc/{pid}/fd")
+        targets = []
+        for n in names:
+            with contextlib.suppress(OSError):  # closed meanwhile
+                targets.append(os.readlink(f"/proc/{pid}/fd/{n}"))
     except (FileNotFoundError, ProcessLookupError):
         return None
     fields = dict(line.split(":", 1) for line in status.splitlines() if ":" in line)
-    return int(fields["VmRSS"].split()[0]), fds, int(fields["Threads"])
+    journal = [t for t in targets if t.endswith(("/journal.sqlite", "/journal.sqlite-wal",
+                                                 "/journal.sqlite-shm"))]
+    folders = {t.rsplit("/", 1)[0] for t in journal}
+    return ProcFigures(int(fields["VmRSS"].split()[0]), len(names), len(names) - len(journal), len(folders),
+                       int(fields["Threads"]))
 
 
 @dataclass
@@ -139,7 +161,7 @@ class Daemon:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
-    def sample(self) -> tuple[int, int, int] | None:
+    def sample(self) -> ProcFigures | None:
         return proc_sample(self.pid) if self.alive() else None
 
     def kill9(self) -> None:

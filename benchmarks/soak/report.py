@@ -52,12 +52,13 @@ def _scope(r: Result, invariant: str) -> str:
         return f"{r.ran['e-stops']} e-stop answers, {r.ran['rig read-backs']} read-backs, the final SIGTERM"
     if invariant == "memory and file descriptors flat":
         return "; ".join(f"daemon {f.incarnation}: RSS {f.rss_first_kib / 1024:.0f}→"
-                         f"{f.rss_last_kib / 1024:.0f} MiB, fds {f.fds_first}→{f.fds_last} "
-                         f"({f.samples} idle samples)" for f in r.flat) or "-"
+                         f"{f.rss_last_kib / 1024:.0f} MiB, fds {f.fds_first}→{f.fds_last} besides "
+                         f"≤ {f.journals_max} journals ({f.samples} idle samples)" for f in r.flat) or "-"
     if invariant == "no 5xx answer":
         return f"{sum(r.traffic.by_route.values())} answers"
     if invariant == "exports one at a time":
-        return f"{sum(v for k, v in r.ran.items() if k.startswith('exports'))} export rounds: 201 or 409 only"
+        rounds = sum(v for k, v in r.ran.items() if k.startswith("exports"))
+        return f"{rounds} export rounds: 201, 409, or 422 for an existing one without overwrite"
     if invariant == "daemon up until stopped":
         return f"{r.ran['daemon starts']} starts; exit 0 after SIGTERM; the queue drained"
     if invariant.startswith("GET"):
