@@ -22,7 +22,7 @@ from typing import Generic, NotRequired, Protocol, TypedDict, TypeVar
 
 from m2s2hil.drivers.clock import Clock
 from m2s2hil.drivers.errors import DeviceTimeout, MoveNotVerified, MoveStalled, ProtocolError, SoftLimitError
-from m2s2hil.drivers.motion_watch import STALL_WINDOW_S, ProgressWatch, trapezoid_s
+from m2s2hil.drivers.motion_watch import PLAN_MARGIN, STALL_WINDOW_S, ProgressWatch, trapezoid_s
 from m2s2hil.drivers.serial_link import SerialLink
 
 T = TypeVar("T")
@@ -40,6 +40,8 @@ class AxisSpec(TypedDict):
     accel_dps2: float
     tolerance_deg: float
     settle_s: NotRequired[float]
+    stall_window_s: NotRequired[float | None]
+    timeout_margin: NotRequired[float]
 
 
 class _Receiver(Protocol[E]):
@@ -131,6 +133,8 @@ class RotaryAxisBase(ABC):
         accel_dps2: float,
         tolerance_deg: float,
         settle_s: float,
+        stall_window_s: float | None = None,
+        timeout_margin: float = PLAN_MARGIN,
     ) -> None:
         if units_per_degree <= 0 or max_speed_dps <= 0 or accel_dps2 <= 0 or tolerance_deg <= 0:
             raise ValueError(f"{name}: units, speed, acceleration and tolerance must be positive")
@@ -143,6 +147,10 @@ class RotaryAxisBase(ABC):
         self.max_speed_dps, self.accel_dps2 = max_speed_dps, accel_dps2
         self.tolerance_deg = tolerance_deg
         self.settle_s = settle_s
+        #: No progress of this axis's motion for this long (s) is a stall; the controller's by default.
+        self.stall_window_s = owner.stall_window_s if stall_window_s is None else stall_window_s
+        #: A move is overdue (logged) after its planned duration x this, plus the reply slack.
+        self.timeout_margin = timeout_margin
 
     # -- what a subclass provides ------------------------------------------------------
     @abstractmethod
@@ -189,8 +197,8 @@ class RotaryAxisBase(ABC):
         v, a = self._speed_limits()
         return ProgressWatch(
             self._owner.clock, planned_s=trapezoid_s(target - start, v, a),
-            slack_s=2.0 * self._owner.timeout_s, stall_window_s=self._owner.stall_window_s,
-            min_progress=self.tolerance_deg / 10, target=target,
+            slack_s=2.0 * self._owner.timeout_s, stall_window_s=self.stall_window_s,
+            min_progress=self.tolerance_deg / 10, target=target, margin=self.timeout_margin,
         )
 
     def _await_arrival(self, start: float, target: float, command: str) -> None:

@@ -48,7 +48,7 @@ from m2s2hil.drivers.errors import (
     StageAlarm,
 )
 from m2s2hil.drivers.locking import one_at_a_time
-from m2s2hil.drivers.motion_watch import STALL_WINDOW_S, ProgressWatch, braking_s
+from m2s2hil.drivers.motion_watch import PLAN_MARGIN, STALL_WINDOW_S, ProgressWatch, braking_s
 from m2s2hil.protocols.grbl import (
     AXES,
     BUILD_INFO,
@@ -498,10 +498,12 @@ class GrblAxis(RotaryAxisBase):
         accel_dps2: float,
         tolerance_deg: float,
         settle_s: float = 0.0,
+        stall_window_s: float | None = None,
+        timeout_margin: float = PLAN_MARGIN,
     ) -> None:
         super().__init__(
             controller, name, units_per_degree, min_deg, max_deg, max_speed_dps, accel_dps2, tolerance_deg,
-            settle_s,
+            settle_s, stall_window_s, timeout_margin,
         )
         self.ctl = controller
         self.letter = letter

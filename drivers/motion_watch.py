@@ -53,11 +53,13 @@ class ProgressWatch:
     stall_window_s: float
     min_progress: float
     target: float | None = None
+    #: Planned duration x this (plus the slack) before the motion counts as overdue.
+    margin: float = PLAN_MARGIN
 
     def __post_init__(self) -> None:
         now = self.clock.monotonic()
         self.started = now
-        self.deadline = now + PLAN_MARGIN * self.planned_s + self.slack_s
+        self.deadline = now + self.margin * self.planned_s + self.slack_s
         self._mark_t = now
         self._mark: float | None = None  # the remaining distance (or position) at the last progress
         self.last: float | None = None

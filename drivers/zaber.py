@@ -35,7 +35,7 @@ from m2s2hil.drivers.errors import (
     StageAlarm,
 )
 from m2s2hil.drivers.locking import one_at_a_time
-from m2s2hil.drivers.motion_watch import STALL_WINDOW_S, ProgressWatch, braking_s
+from m2s2hil.drivers.motion_watch import PLAN_MARGIN, STALL_WINDOW_S, ProgressWatch, braking_s
 from m2s2hil.protocols.zaber import (
     ACCEL_DATA_PER_USTEP_S2,
     MAX_MESSAGE_ID,
@@ -245,9 +245,12 @@ class ZaberAxis(RotaryAxisBase):
         accel_dps2: float,
         tolerance_deg: float,
         settle_s: float = 0.0,
+        stall_window_s: float | None = None,
+        timeout_margin: float = PLAN_MARGIN,
     ) -> None:
         super().__init__(
-            dev, name, units_per_degree, min_deg, max_deg, max_speed_dps, accel_dps2, tolerance_deg, settle_s
+            dev, name, units_per_degree, min_deg, max_deg, max_speed_dps, accel_dps2, tolerance_deg, settle_s,
+            stall_window_s, timeout_margin,
         )
         self.dev = dev
         self.number = number
@@ -303,8 +306,8 @@ class ZaberAxis(RotaryAxisBase):
         self.dev.request(self.number, "stop", check_faults=False)
         watch = ProgressWatch(
             self.dev.clock, planned_s=braking_s(self.max_speed_dps, self.accel_dps2),
-            slack_s=2.0 * self.dev.timeout_s, stall_window_s=self.dev.stall_window_s,
-            min_progress=1.0 / self.units_per_degree,  # one microstep
+            slack_s=2.0 * self.dev.timeout_s, stall_window_s=self.stall_window_s,
+            min_progress=1.0 / self.units_per_degree, margin=self.timeout_margin,  # one microstep
         )
         busy, degrees = self._poll_pos(check_faults=False)
         while busy:
@@ -355,6 +358,8 @@ def open_zaber_axes(
                 accel_dps2=ax.accel_dps2,
                 tolerance_deg=ax.tolerance_deg,
                 settle_s=ax.settle_s,
+                stall_window_s=ax.stall_window_s,
+                timeout_margin=ax.timeout_margin,
             )
             for role, ax in axes.items()
         }

@@ -29,6 +29,7 @@ from pydantic import (
     model_validator,
 )
 
+from m2s2hil.drivers.motion_watch import PLAN_MARGIN, STALL_WINDOW_S
 from m2s2hil.errors import ConfigError, UsageError, validation_problem
 from m2s2hil.sim_config import SimulationConfig, check_devices
 
@@ -125,6 +126,11 @@ class AxisConfig(_Model):
     #: Motor steps per degree of the axis (full steps per turn x microstepping x gear ratio / 360),
     #: if known: ``m2s2hil rig probe`` then checks GRBL's ``$100..$102`` against it.
     steps_per_degree: Annotated[float, Field(gt=0)] | None = None
+    #: How long a move may take (m2s2hil/drivers/motion_watch.py, docs/rig-setup.md): no
+    #: progress for ``stall_window_s`` while the controller says it moves is a stall; a move
+    #: is overdue (logged, not failed) after its planned duration x ``timeout_margin``.
+    stall_window_s: Annotated[float, Field(ge=0.5, le=600)] = STALL_WINDOW_S
+    timeout_margin: Annotated[float, Field(ge=1.0, le=20)] = PLAN_MARGIN
 
     @model_validator(mode="after")
     def _limits(self) -> AxisConfig:

@@ -114,6 +114,28 @@ def test_own_and_configured_origins_and_plain_scripts_may(d) -> None:
     assert "access-control-allow-origin" not in d.client.get("/sessions", headers={"Origin": EVIL}).headers
 
 
+def test_two_origins_are_refused_whichever_comes_first(d) -> None:
+    own = "http://127.0.0.1:8750"
+    for first, second in ((own, EVIL), (EVIL, own), (own, own)):
+        headers = [("Origin", first), ("Origin", second), ("X-M2S2HIL", "1")]
+        for method, path in STATE_CHANGES:
+            r = d.client.request(method, path, headers=headers)
+            assert r.status_code == 403 and "more than one Origin" in r.json()["detail"], (path, r.text)
+    assert d.manager.held is None
+    assert d.client.get("/healthz", headers=[("Origin", own), ("Origin", EVIL)]).status_code == 200
+
+
+def test_a_trailing_dot_is_the_same_host_for_host_and_origin(d) -> None:
+    for host, origin in (("localhost.:8750", "http://localhost.:8750"), ("localhost.:8750", "http://localhost:8750"),
+                         ("localhost:8750", "http://localhost.:8750"), ("rig-pc.lab.:8750", "http://rig-pc.lab.:8750")):
+        r = d.client.post("/queue/hold", params={"reason": "swap"}, headers={"Host": host, "Origin": origin})
+        assert r.status_code == 200, (host, origin, r.text)
+    r = d.client.post("/queue/hold", headers={"Host": "localhost.:8750", "Origin": "http://localhost.:9999"})
+    assert r.status_code == 403  # the port still counts
+    assert normalise_origin("http://LocalHost.:8750") == "http://localhost:8750"
+    assert normalise_origin("http://.:8750") is None
+
+
 def test_origin_normalisation() -> None:
     assert normalise_origin("HTTP://LocalHost:80") == "http://localhost"
     assert normalise_origin("http://[::1]:8750/") == "http://[::1]:8750"

@@ -118,3 +118,16 @@ def test_a_failed_session_holds_the_queue(tmp_path) -> None:
         assert d.rig.world.lamps_on() == frozenset()  # the failure left the rig safe
         d.client.post("/queue/release")
         assert d.wait_done(second)["state"] == "completed"
+
+
+def test_the_state_filter_finds_what_the_list_shows(tmp_path) -> None:
+    # an e-stopped session this daemon still knows: its engine ended "aborted", it is "estopped"
+    with daemon(tmp_path / "data") as d:
+        sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
+        d.wait(sid, lambda s: s["state"] == "running" and s["done"] >= 2)
+        assert d.client.post("/rig/stop").json()["session_state"] == "aborted"
+        listed = {s["session_id"]: s["state"] for s in d.client.get("/sessions").json()["items"]}
+        assert listed == {sid: "estopped"}
+        page = d.client.get("/sessions", params={"state": "estopped"}).json()
+        assert page["total"] == 1 and [s["session_id"] for s in page["items"]] == [sid]
+        assert d.client.get("/sessions", params={"state": "aborted"}).json()["total"] == 0

@@ -1,4 +1,5 @@
-"""``m2s2hil export SESSION --layout m2s2|hf|zarr --out DIR [--root DATA_ROOT]``.
+"""``m2s2hil export SESSION --layout m2s2|hf|zarr|envi --out DIR [--root DATA_ROOT]`` (``--format`` is
+the same option).
 
 Exporting only reads the session (opened read-only; nothing is recorded in it). The export is
 written beside ``--out`` and renamed into place, under a lock the daemon's exports share
@@ -40,13 +41,22 @@ def open_session(session: str, root: Path | None) -> SessionStore:
 def export_cmd(
     session: str = typer.Argument(..., help="session id (or the session's folder)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder"),
-    layout: str = typer.Option("m2s2", "--layout", help=f"one of: {', '.join(LAYOUTS)}"),
+    layout: str = typer.Option("m2s2", "--layout", "--format",
+                               help=f"one of: {', '.join((*LAYOUTS, 'envi'))}"),
     root: Path | None = typer.Option(None, "--root", help="data root (default: $M2S2HIL_DATA or ./sessions)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace files already in --out"),
 ) -> None:
     """Export SESSION's frames with their metadata."""
+    if layout == "envi":  # one ENVI pair per cube, m2s2hil.integrations.envi
+        from m2s2hil.daemon.export_lock import export_lock
+        from m2s2hil.integrations.envi import export_envi
+
+        with open_session(session, root) as store, export_lock(out):
+            envi = export_envi(store, out, overwrite=overwrite)
+        typer.echo(f"exported {envi.images} cube(s) of {session} as envi to {out} ({len(envi.files)} files)")
+        return
     if layout not in LAYOUTS:
-        raise UsageError(f"--layout must be one of {', '.join(LAYOUTS)}, not {layout!r}")
+        raise UsageError(f"--layout must be one of {', '.join((*LAYOUTS, 'envi'))}, not {layout!r}")
     with open_session(session, root) as store:
         res = export_once(store, out, layout, overwrite=overwrite)
     typer.echo(f"exported {res.images} image(s) of {session} as {layout} to {out} ({len(res.files)} files)")

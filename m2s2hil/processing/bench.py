@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from m2s2hil.processing.chain import FrameProcessor
-from m2s2hil.processing.dark import build_master_dark
+from m2s2hil.processing.dark import build_master_dark, subtract_dark
 from m2s2hil.processing.demosaic import METHODS, check_method, get_demosaicer
 from m2s2hil.processing.groundtruth import Scene, mosaic_of
 from m2s2hil.processing.image_quality import Quality, evaluate
@@ -84,7 +84,7 @@ def measure_speed(
         check_method(m)
         fp = FrameProcessor(m, camera, dark=dark)
         pipe = time_call(lambda fp=fp: fp.process(raw), frames=frames, rounds=rounds)
-        corrected = fp._corrected.copy()
+        corrected, _ = subtract_dark(raw, dark, full_scale=camera.full_scale)
         demo = time_call(lambda fp=fp, c=corrected: fp.demosaicer.process(c), frames=frames, rounds=rounds)
         out[m] = (pipe, demo)
     return out

@@ -23,8 +23,13 @@ from m2s2hil.processing.stability import (
     grow_mask,
     low_light_warning,
     phase_warning,
+    saturation_count_warning,
     saturation_warning,
 )
+from m2s2hil.processing.superpixel import SuperPixelDemosaicer
+
+#: The QC checks (phase, low light) sample every 8th cell row of the corrected mosaic.
+QC_ROW_STEP = 8
 
 
 @dataclass
@@ -80,9 +85,15 @@ class FrameProcessor:
             self.demosaicer.fix_gains(
                 self._cal.white_band_levels
             )  # PPID balances with the white's band levels
-        self._corrected = np.empty(self.shape, np.uint16)
-        self._raw_sat = np.empty(self.shape, np.bool_)
         self._cube_sat = np.zeros(self.demosaicer.out_shape[1:], np.bool_)
+        # super-pixel takes the one-pass path (no full corrected mosaic); the others the two-step one
+        self._fused = self.demosaicer if isinstance(self.demosaicer, SuperPixelDemosaicer) else None
+        if self._fused is None:
+            self._corrected = np.empty(self.shape, np.uint16)
+            self._raw_sat = np.empty(self.shape, np.bool_)
+        else:
+            n = self.layout.n
+            self._qc_rows = np.empty((-(-self.shape[0] // n // QC_ROW_STEP), n, self.shape[1]), np.uint16)
         self._check_every = max(0, int(check_phase_every))
         if threads is not None and not 1 <= threads <= numba.config.NUMBA_NUM_THREADS:
             raise ProcessingError(f"threads must be 1..{numba.config.NUMBA_NUM_THREADS}, got {threads}")
@@ -102,6 +113,8 @@ class FrameProcessor:
     def process(self, raw: np.ndarray) -> ProcessedFrame:
         if raw.shape != self.shape or raw.dtype != np.uint16:
             raise FrameShapeError(f"raw frame is {raw.dtype} {raw.shape}, expected uint16 {self.shape}")
+        if self._fused is not None:
+            return self._process_fused(raw, self._fused)
         if self.dark is not None:
             mosaic, sat = subtract_dark(
                 raw, self.dark, out=self._corrected, sat_mask_out=self._raw_sat, full_scale=self.full_scale
@@ -139,6 +152,35 @@ class FrameProcessor:
                 warnings.append(msg)
         if self.dark is not None:
             msg = low_light_warning(mosaic, self.dark.read_noise_dn, self.layout.n)
+            if msg:
+                warnings.append(msg)
+        self._count += 1
+        return ProcessedFrame(cube=cube, saturated_mask=self._cube_sat, warnings=warnings, info=self.info)
+
+    def _process_fused(self, raw: np.ndarray, sp: SuperPixelDemosaicer) -> ProcessedFrame:
+        """Super-pixel in one pass with the dark and the saturation flags; the same frame as
+        ``process``'s two-step path. The QC checks read only every ``QC_ROW_STEP``-th cell row,
+        which the kernel keeps, so the corrected mosaic is never written whole."""
+        raw = np.ascontiguousarray(raw)
+        dark = self.dark.data if self.dark is not None else None
+        qc = self._qc_rows if dark is not None else None
+        cube, n_sat = sp.process_raw(raw, dark, self.full_scale, self._cube_sat, qc, QC_ROW_STEP)
+        warnings: list[str] = []
+        if self._cal is not None:
+            self._cal.apply(cube)
+            warnings.extend(self._cal.warnings)
+        msg = saturation_count_warning(n_sat, raw.size, self.full_scale, sp.support_radius)
+        if msg:
+            warnings.append(msg)
+        n = self.layout.n
+        rows = raw if qc is None else qc.reshape(-1, self.shape[1])
+        step = QC_ROW_STEP if qc is None else 1
+        if self._check_every and self._count % self._check_every == 0:
+            msg = phase_warning(check_phase(rows, self.layout, step=step))
+            if msg:
+                warnings.append(msg)
+        if self.dark is not None:
+            msg = low_light_warning(rows, self.dark.read_noise_dn, n, QC_ROW_STEP, row_step=step)
             if msg:
                 warnings.append(msg)
         self._count += 1

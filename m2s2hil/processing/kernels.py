@@ -205,6 +205,79 @@ def superpixel_rows(src, pr, pc, band_start, band_count, out, cy_lo, cy_hi):
                     o[cx] *= inv
 
 
+@njit(cache=True, error_model="numpy")
+def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, out, cell_sat, qc, qc_step):
+    """Dark subtraction, saturation flags and super-pixel in one pass over ``raw`` and ``dark``.
+
+    Equals ``superpixel_rows(max(raw − dark, 0))`` (uint16, clipped at 0), with ``cell_sat[cy, cx]``
+    True where a raw pixel of the cell is ≥ ``full_scale``. ``dark`` of shape (0, 0) means no dark.
+    Every ``qc_step``-th cell row of the corrected mosaic is copied into ``qc`` (rows, n, W) for the
+    QC checks that sample only those rows (none when ``qc`` has no rows). Returns the number of
+    saturated raw pixels. Why one pass: the two-step chain wrote and re-read an 8 MB corrected
+    mosaic and ran two thread pools; each cell row here is corrected into an L1-sized scratch and
+    reduced from there, so memory sees each input once and each output once. Serial on purpose
+    (see ``superpixel_rows``' caller).
+    """
+    h, w = raw.shape
+    n_pos = pr.shape[0]
+    n = 1
+    while n * n < n_pos:
+        n += 1
+    kw = w // n
+    n_bands = band_start.shape[0]
+    has_dark = dark.shape[0] == h
+    rows = np.empty((n, w), np.uint16)
+    n_sat = 0
+    for cy in range(h // n):
+        row_sat = 0
+        for py in range(n):
+            r = raw[cy * n + py]
+            c = rows[py]
+            if has_dark:
+                d = dark[cy * n + py]
+                for x in range(w):
+                    a = r[x]
+                    b = d[x]
+                    c[x] = a - b if a > b else 0
+                    row_sat += a >= full_scale
+            else:
+                for x in range(w):
+                    a = r[x]
+                    c[x] = a
+                    row_sat += a >= full_scale
+        n_sat += row_sat
+        flags = cell_sat[cy]
+        if row_sat == 0:
+            for cx in range(kw):
+                flags[cx] = False
+        else:  # rare: find the clipped cells
+            for cx in range(kw):
+                hit = False
+                for py in range(n):
+                    cells = raw[cy * n + py, cx * n : (cx + 1) * n]
+                    for j in range(n):
+                        hit |= cells[j] >= full_scale
+                flags[cx] = hit
+        if qc.shape[0] > 0 and cy % qc_step == 0:
+            qc[cy // qc_step] = rows
+        for b in range(n_bands):
+            s = band_start[b]
+            cnt = band_count[b]
+            o = out[b, cy]
+            first = rows[pr[s], pc[s] :: n]
+            for cx in range(kw):
+                o[cx] = np.float32(first[cx])
+            if cnt > 1:
+                for p in range(s + 1, s + cnt):
+                    more = rows[pr[p], pc[p] :: n]
+                    for cx in range(kw):
+                        o[cx] += np.float32(more[cx])
+                inv = np.float32(1.0 / cnt)
+                for cx in range(kw):
+                    o[cx] *= inv
+    return n_sat
+
+
 # --- PPID: pseudo-panchromatic image ----------------------------------------------------------
 # Hot loops index only with loop variables that start at 0 (offsets go into slices): numba's
 # negative-index wrap-around on any other index blocks vectorisation (≈25× slower).

@@ -133,26 +133,35 @@ def cell_mask(raw_mask: np.ndarray, n: int, out: np.ndarray | None = None) -> np
 
 
 def saturation_warning(raw_mask: np.ndarray, full_scale: int, radius: int) -> str | None:
-    count = int(np.count_nonzero(raw_mask))
+    return saturation_count_warning(int(np.count_nonzero(raw_mask)), raw_mask.size, full_scale, radius)
+
+
+def saturation_count_warning(count: int, size: int, full_scale: int, radius: int) -> str | None:
+    """The saturation warning from a count of clipped raw pixels out of ``size``."""
     if not count:
         return None
-    frac = 100.0 * count / raw_mask.size
+    frac = 100.0 * count / size
     return (
         f"{count} raw pixels ({frac:.2f} %) at full scale {full_scale}: their true values are unknown and "
         f"every band within {radius} px of them is unreliable (see saturated_mask); shorten the exposure"
     )
 
 
-def low_light_warning(mosaic: np.ndarray, read_noise_dn: float | None, n: int, step: int = 8) -> str | None:
+def low_light_warning(
+    mosaic: np.ndarray, read_noise_dn: float | None, n: int, step: int = 8, row_step: int | None = None
+) -> str | None:
     """Warn when even the bright part of the frame (95th percentile) is below 5× the read noise.
 
     A percentile rather than the median: M2S2 frames are mostly dark background around the
     mockup, so the median says nothing about the object. Needs the dark series' read noise.
+    Samples every ``step``-th cell in both directions; ``row_step`` (default ``step``) overrides
+    it for cell rows, e.g. 1 for a mosaic that already holds only every 8th cell row.
     """
     if not read_noise_dn or read_noise_dn <= 0:
         return None
     h, w = mosaic.shape
-    sample = mosaic.reshape(h // n, n, w // n, n)[::step, :, ::step, :].ravel()
+    rs = step if row_step is None else row_step
+    sample = mosaic.reshape(h // n, n, w // n, n)[::rs, :, ::step, :].ravel()
     k = int(0.95 * (sample.size - 1))
     signal = float(np.partition(sample, k)[k])
     snr = signal / read_noise_dn

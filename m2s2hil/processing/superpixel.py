@@ -11,7 +11,11 @@ import numpy as np
 
 from m2s2hil.processing import kernels
 from m2s2hil.processing.demosaic import Demosaicer
+from m2s2hil.processing.errors import FrameShapeError
 from m2s2hil.processing.mosaic import MosaicLayout
+
+_NO_DARK = np.zeros((0, 0), np.uint16)
+_NO_QC = np.zeros((0, 1, 1), np.uint16)
 
 
 def position_tables(layout: MosaicLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -37,9 +41,48 @@ class SuperPixelDemosaicer(Demosaicer):
         return 0  # a saturated raw pixel spoils exactly its own cell
 
     def _run(self, mosaic: np.ndarray) -> None:
-        # serial on purpose: 0.9 ms of work gains 0.4 ms from a second thread on an idle machine,
-        # but on a shared one a parallel region can wait several ms for a descheduled worker
+        # serial on purpose: the work is memory-bound (a second thread gains little even on an idle
+        # machine), and on a shared one a parallel region can wait several ms for a descheduled
+        # worker or for an OpenMP pool spinning against the pipeline's own threads
         kernels.superpixel_rows(mosaic, *self._tables, self.out, 0, self.out_shape[1])
+
+    def process_raw(
+        self,
+        raw: np.ndarray,
+        dark: np.ndarray | None,
+        full_scale: int,
+        cell_sat: np.ndarray,
+        qc_rows: np.ndarray | None = None,
+        qc_step: int = 8,
+    ) -> tuple[np.ndarray, int]:
+        """``(cube, saturated raw pixels)`` for a raw uint16 frame: dark subtraction (clipped at 0),
+        saturation flags per cell into ``cell_sat`` and super-pixel in one pass (the same cube as
+        ``process(subtract_dark(raw, dark))``). Every ``qc_step``-th cell row of the corrected mosaic
+        goes into ``qc_rows`` (ceil(H/n / qc_step), n, W) when given."""
+        h, w = self.shape
+        n = self.layout.n
+        if raw.shape != self.shape or raw.dtype != np.uint16 or not raw.flags.c_contiguous:
+            raise FrameShapeError(
+                f"{self.name}: raw must be C-contiguous uint16 {self.shape}, got {raw.dtype} {raw.shape}"
+            )
+        d = _NO_DARK if dark is None else np.ascontiguousarray(dark)
+        if dark is not None and (d.shape != self.shape or d.dtype != np.uint16):
+            raise FrameShapeError(
+                f"{self.name}: dark {d.dtype} {d.shape} does not fit raw frame uint16 {self.shape}"
+            )
+        if cell_sat.shape != self.out_shape[1:] or cell_sat.dtype != np.bool_:
+            raise FrameShapeError(
+                f"{self.name}: cell_sat must be bool {self.out_shape[1:]}, "
+                f"got {cell_sat.dtype} {cell_sat.shape}"
+            )
+        qc = _NO_QC if qc_rows is None else qc_rows
+        want = (-(-(h // n) // qc_step), n, w)
+        if qc_rows is not None and (qc.shape != want or qc.dtype != np.uint16):
+            raise FrameShapeError(f"{self.name}: qc_rows must be uint16 {want}, got {qc.dtype} {qc.shape}")
+        n_sat = kernels.dark_superpixel_rows(
+            raw, d, full_scale, *self._tables, self.out, cell_sat, qc, qc_step
+        )
+        return self.out, int(n_sat)
 
     def centroids(self) -> np.ndarray:
         """(bands, 2) mean (row, col) position of each band inside the cell."""

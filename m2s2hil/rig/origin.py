@@ -2,16 +2,11 @@
 
 A turntable or tilt stage without switches (``homing = "none"`` in the rig file, the
 default: a factory GRBL 1.1 has homing off, ``$22=0``) cannot find its zero by itself.
-The operator turns it to the zero mark and runs ``m2s2hil rig origin AXIS --rig FILE``:
-
-- GRBL: ``G10 L20 P1 X0`` makes the current place the axis's zero of the G54 work
-  coordinate system. GRBL keeps the G54..G59 offsets in EEPROM, so they survive resets
-  and power cycles (GRBL v1.1 wiki, "Grbl v1.1 Commands": ``G10 L2``/``G10 L20`` write
-  the work coordinate offsets, stored in EEPROM; ``G92`` offsets are not persistent).
-  ``$#`` reads them back. Moves stay in machine coordinates (G53); the driver adds the
-  G54 offset (:attr:`m2s2hil.drivers.grbl.GrblAxis.origin_units`).
-- Zaber: ``set pos 0`` gives the current place the position 0 without moving (the ``pos``
-  setting is writable: Zaber ASCII Protocol Manual, firmware 7, "pos").
+The operator turns it to the zero mark and runs ``m2s2hil rig origin AXIS --rig FILE``,
+which makes where the axis stands its zero on the controller, as its motion kind does it
+(:class:`~m2s2hil.rig.devices.kind.MotionKind` ``set_origin``, ``stored_origin``,
+``use_origin``): GRBL writes the G54 work offset with ``G10 L20`` (kept in EEPROM), Zaber
+sets ``pos`` to 0 (:mod:`m2s2hil.rig.devices.grbl`, :mod:`m2s2hil.rig.devices.zaber`).
 
 The origin is recorded in the rig's state file, ``<rig file stem>.state.json`` next to
 the rig file (it describes that rig; sessions on any data root use it), with what the
@@ -39,9 +34,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from m2s2hil.config import AxisConfig, RigConfig
+from m2s2hil.config import AxisConfig, DeviceConfig, RigConfig
 from m2s2hil.drivers.clock import SYSTEM_CLOCK, Clock
 from m2s2hil.errors import M2S2Error, UsageError
+from m2s2hil.rig.devices import motion_kind
+from m2s2hil.rig.devices.kind import OFFSET_TOLERANCE_UNITS, OriginReading, Setup
 from m2s2hil.rig.open_errors import RigOpenError, opening
 from m2s2hil.sim_config import is_simulated
 
@@ -49,8 +46,6 @@ if TYPE_CHECKING:
     from m2s2hil.rig.opened import Rig
 
 STATE_FORMAT = "m2s2hil-rig-state/1"
-#: How far (machine units) a controller's stored offset may differ from the recorded one.
-OFFSET_TOLERANCE_UNITS = 1e-3
 
 
 class StateFileError(UsageError):
@@ -118,29 +113,6 @@ def state_path(config: RigConfig) -> Path | None:
     return None if src is None else src.with_name(src.stem + ".state.json")
 
 
-# -- GRBL ------------------------------------------------------------------------------------
-def grbl_work_offsets(ctl: Any) -> dict[str, tuple[float, ...]]:
-    """``$#``: the stored coordinate tables by name (``G54`` .. ``G59``, ``G28``, ``G30``, ``G92``)."""
-    from m2s2hil.protocols.grbl import Feedback
-
-    out: dict[str, tuple[float, ...]] = {}
-    for ev in ctl.command("$#", idempotent=True):
-        if isinstance(ev, Feedback) and ev.tag.startswith("G"):
-            try:
-                out[ev.tag] = tuple(float(v) for v in ev.text.split(":")[0].split(","))
-            except ValueError:
-                continue
-    return out
-
-
-def _grbl_identity(ctl: Any) -> str:
-    return f"GRBL {ctl.version}"
-
-
-def _zaber_identity(zd: Any) -> str:
-    return f"Zaber {zd.info.get('deviceid', '?')} serial {zd.info.get('system.serial', '?')}"
-
-
 def _now() -> str:
     return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
 
@@ -163,24 +135,22 @@ def set_origin(config: RigConfig, role: str, *, clock: Clock = SYSTEM_CLOCK,
     if path is None:
         raise UsageError("the rig has no file to keep its state next to: pass --rig FILE")
     state = RigState.load(path)
-    origin = _set_grbl_origin(ax, dev, clock) if dev.protocol == "grbl" else _set_zaber_origin(ax, dev, clock)
+    kind = motion_kind(dev.protocol)
+    ctl = kind.controller(Setup(ax.device, config, clock))
+    with _connected(ctl, ax, dev):
+        origin = _record(kind.set_origin(ctl, ax, dev), ax, dev)
     state.rig = config.rig.name
     state.origins[role] = origin
     state.save(path)
     return origin
 
 
-def _set_grbl_origin(ax: AxisConfig, dev: Any, clock: Clock) -> AxisOrigin:
-    from m2s2hil.drivers.grbl import GrblController
-
-    ctl = GrblController(dev.port, device=ax.device, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
-                         clock=clock, retries=dev.retries)
-    with _connected(ctl, ax, dev):
-        return _grbl_origin_on(ctl, ax, dev)
+def _record(reading: OriginReading, ax: AxisConfig, dev: DeviceConfig) -> AxisOrigin:
+    return AxisOrigin(ax.device, dev.protocol, reading.axis, reading.controller, reading.offset_units, _now())
 
 
 @contextlib.contextmanager
-def _connected(driver: Any, ax: AxisConfig, dev: Any) -> Iterator[None]:
+def _connected(driver: Any, ax: AxisConfig, dev: DeviceConfig) -> Iterator[None]:
     """A connection of our own for the command line (closed afterwards); errors as when opening a rig."""
     try:
         with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
@@ -190,58 +160,10 @@ def _connected(driver: Any, ax: AxisConfig, dev: Any) -> Iterator[None]:
         driver.close()
 
 
-def _grbl_origin_on(ctl: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
-    """``G10 L20`` on a connected controller, read back with ``$#``."""
-    from m2s2hil.protocols.grbl import AXES
-
-    letter = ax.axis.upper()
-    with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
-        st = ctl.status()
-        if st.state == "Alarm":
-            # The operator is placing the zero by hand: the controller's old position does
-            # not matter any more, so unlocking ($X) is safe here.
-            st = ctl.clear_alarm(home=False)
-        if st.moving:
-            raise RigOpenError(ax.device, dev.port, "device error",
-                               f"the controller is busy ({st.state_text})",
-                               "wait until the axis stands still")
-        ctl.command(f"G10 L20 P1 {letter}0")
-        g54 = grbl_work_offsets(ctl).get("G54")
-        here = ctl.axis_position(letter)
-    i = AXES.index(letter)
-    if g54 is None or abs(g54[i] - here) > OFFSET_TOLERANCE_UNITS:
-        raise RigOpenError(ax.device, dev.port, "device error",
-                           f"after G10 L20 the controller reports G54 {g54} with the axis at {here}",
-                           "run `m2s2hil rig probe` and check the controller's firmware")
-    return AxisOrigin(ax.device, "grbl", letter, _grbl_identity(ctl), float(g54[i]), _now())
-
-
-def _set_zaber_origin(ax: AxisConfig, dev: Any, clock: Clock) -> AxisOrigin:
-    from m2s2hil.drivers.zaber import ZaberDevice
-
-    zd = ZaberDevice(dev.port, device=ax.device, address=dev.unit, baudrate=dev.baudrate,
-                     timeout_s=dev.timeout_s, clock=clock, retries=dev.retries)
-    with _connected(zd, ax, dev):
-        return _zaber_origin_on(zd, ax, dev)
-
-
-def _zaber_origin_on(zd: Any, ax: AxisConfig, dev: Any) -> AxisOrigin:
-    """``set pos 0`` on a connected device, read back."""
-    with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
-        number = int(ax.axis)
-        zd.request(number, "set pos 0", check_faults=False)
-        pos = zd.get("pos", number)
-    if pos.strip() != "0":
-        raise RigOpenError(ax.device, dev.port, "device error", f"after set pos 0 the axis reports {pos}")
-    return AxisOrigin(ax.device, "zaber", str(number), _zaber_identity(zd), 0.0, _now())
-
-
 def set_origin_open(rig: Rig, role: str) -> AxisOrigin:
     """:func:`set_origin` through the opened rig's own connection (the daemon holds the ports
     exclusively, so it cannot open them a second time); the axis driver counts from the new
     origin at once."""
-    from m2s2hil.drivers.grbl import GrblAxis, GrblController
-    from m2s2hil.drivers.zaber import ZaberDevice
     from m2s2hil.rig.mirror import MirroredAxis
 
     config = rig.config
@@ -257,17 +179,12 @@ def set_origin_open(rig: Rig, role: str) -> AxisOrigin:
         raise UsageError("the rig has no file to keep its state next to: start the daemon with --rig FILE")
     link = next((lk for lk in rig.links if lk.means(ax.device)), None)
     owner = link.reconnect if link is not None else None
-    if isinstance(owner, GrblController):
-        origin = _grbl_origin_on(owner, ax, dev)
-        drv: object = rig.axis(role)  # type: ignore[arg-type]
-        if isinstance(drv, MirroredAxis):
-            drv = drv.wrapped
-        if isinstance(drv, GrblAxis):
-            drv.origin_units = origin.offset_units
-    elif isinstance(owner, ZaberDevice):
-        origin = _zaber_origin_on(owner, ax, dev)
-    else:
+    if owner is None:
         raise UsageError(f"{role}: no open connection to {ax.device} to set the origin through")
+    kind = motion_kind(dev.protocol)
+    origin = _record(kind.set_origin(owner, ax, dev), ax, dev)
+    drv: object = rig.axis(role)  # type: ignore[arg-type]
+    kind.use_origin(drv.wrapped if isinstance(drv, MirroredAxis) else drv, origin.offset_units)
     state = RigState.load(path)
     state.rig = config.rig.name
     state.origins[role] = origin
@@ -284,8 +201,6 @@ def establish_origins(config: RigConfig, controllers: Mapping[str, Any], axes: M
     Returns each checked role's origin offset (machine units). Raises RigOpenError when an
     origin was never set or the controller no longer holds it.
     """
-    from m2s2hil.protocols.grbl import AXES
-
     path = path or state_path(config)
     state: RigState | None = None
     out: dict[str, float] = {}
@@ -293,32 +208,10 @@ def establish_origins(config: RigConfig, controllers: Mapping[str, Any], axes: M
         if ax.homing != "none" or ax.device not in controllers:
             continue
         dev = config.devices[ax.device]
-        ctl = controllers[ax.device]
+        kind = motion_kind(dev.protocol)
         with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
-            if dev.protocol == "grbl":
-                st = ctl.status()
-                if st.state == "Alarm":
-                    if ctl.settings.get(22):
-                        raise RigOpenError(
-                            ax.device, dev.port, "alarm",
-                            "the controller has homing on ($22=1) and boots locked, but the rig file says "
-                            f"{role} has no switches (homing = \"none\")",
-                            "set $22=0 (`m2s2hil rig probe FILE --apply`) or homing = \"switches\"")
-                    raise RigOpenError(ax.device, dev.port, "alarm",
-                                       f"the controller is in alarm (last ALARM:{int(ctl.last_alarm or 0)}); "
-                                       f"{role}'s position is not trusted", None)
-                g54 = grbl_work_offsets(ctl).get("G54")
-                if g54 is None:
-                    raise RigOpenError(ax.device, dev.port, "device error", "`$#` reported no G54 offset")
-                offset = g54[AXES.index(ax.axis.upper())]
-                identity = _grbl_identity(ctl)
-            else:
-                reply = ctl.request(int(ax.axis), "", idempotent=True, check_faults=False)
-                if reply.fault:
-                    raise RigOpenError(ax.device, dev.port, "alarm",
-                                       f"axis {ax.axis} reports fault {reply.warning}")
-                offset = 0.0
-                identity = _zaber_identity(ctl)
+            held = kind.stored_origin(controllers[ax.device], role, ax, dev)
+        offset, identity = held.offset_units, held.controller
         if not is_simulated(dev.port):
             if state is None:
                 state = RigState.load(path)
@@ -335,9 +228,8 @@ def establish_origins(config: RigConfig, controllers: Mapping[str, Any], axes: M
                                    f"the controller's stored origin is {offset:g}, the recorded one "
                                    f"{rec.offset_units:g} (changed by another program, or its EEPROM reset)")
         drv = axes.get(role)
-        if dev.protocol == "grbl" and drv is not None:
-            drv.origin_units = offset
         if drv is not None:
+            kind.use_origin(drv, offset)
             drv.position()  # the controller reports a position in this frame (raises if it cannot)
         out[role] = offset
     return out

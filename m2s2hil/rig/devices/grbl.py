@@ -17,6 +17,13 @@ counts:
   open), ``none`` needs ``$22=0`` (else the controller boots locked in alarm).
 
 With ``apply`` the rig file's settings are written first (``rig probe --apply``).
+
+An axis without switches gets its origin with ``G10 L20 P1 X0``: the current place becomes
+the axis's zero of the G54 work coordinate system, which GRBL keeps in EEPROM across resets
+and power cycles (GRBL v1.1 wiki, "Grbl v1.1 Commands": ``G10 L2``/``G10 L20`` write the work
+coordinate offsets, stored in EEPROM; ``G92`` offsets are not persistent). ``$#`` reads it
+back. Moves stay in machine coordinates (G53); the driver adds the G54 offset
+(:attr:`m2s2hil.drivers.grbl.GrblAxis.origin_units`).
 """
 
 from __future__ import annotations
@@ -25,11 +32,20 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-from m2s2hil.config import RigConfig
+from m2s2hil.config import AxisConfig, DeviceConfig, RigConfig
 from m2s2hil.drivers.interfaces import RotaryAxis
 from m2s2hil.errors import ConfigError
 from m2s2hil.rig.devices.findings import REL_TOL, Finding, ProbeReport, agree, num
-from m2s2hil.rig.devices.kind import MotionKind, Setup, Signature, SimParts, close_quietly, connect_or_close
+from m2s2hil.rig.devices.kind import (
+    OFFSET_TOLERANCE_UNITS,
+    MotionKind,
+    OriginReading,
+    Setup,
+    Signature,
+    SimParts,
+    close_quietly,
+    connect_or_close,
+)
 from m2s2hil.rig.open_errors import RigOpenError, detail_of, opening
 
 
@@ -50,8 +66,11 @@ def _controller(setup: Setup) -> Any:
     from m2s2hil.drivers.grbl import GrblController
 
     dev = setup.device
+    # A feed hold stops every axis at once: it may stall as long as the most patient axis.
+    windows = [ax.stall_window_s for ax in setup.axes.values()]
+    kw = {"stall_window_s": max(windows)} if windows else {}
     return GrblController(dev.port, device=setup.name, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
-                          clock=setup.clock, retries=dev.retries)
+                          clock=setup.clock, retries=dev.retries, **kw)
 
 
 def _open_axes(setup: Setup) -> tuple[Any, dict[str, RotaryAxis]]:
@@ -61,7 +80,8 @@ def _open_axes(setup: Setup) -> tuple[Any, dict[str, RotaryAxis]]:
         role: ctl.axis(
             ax.axis, name=role, units_per_degree=ax.units_per_degree, min_deg=ax.min_deg,
             max_deg=ax.max_deg, max_speed_dps=ax.max_speed_dps, accel_dps2=ax.accel_dps2,
-            tolerance_deg=ax.tolerance_deg, settle_s=ax.settle_s,
+            tolerance_deg=ax.tolerance_deg, settle_s=ax.settle_s, stall_window_s=ax.stall_window_s,
+            timeout_margin=ax.timeout_margin,
         )
         for role, ax in setup.axes.items()
     }
@@ -184,12 +204,89 @@ def _apply(ctl: Any, config: RigConfig, name: str) -> list[str]:
     return lines
 
 
+def work_offsets(ctl: Any) -> dict[str, tuple[float, ...]]:
+    """``$#``: the stored coordinate tables by name (``G54`` .. ``G59``, ``G28``, ``G30``, ``G92``)."""
+    from m2s2hil.protocols.grbl import Feedback
+
+    out: dict[str, tuple[float, ...]] = {}
+    for ev in ctl.command("$#", idempotent=True):
+        if isinstance(ev, Feedback) and ev.tag.startswith("G"):
+            try:
+                out[ev.tag] = tuple(float(v) for v in ev.text.split(":")[0].split(","))
+            except ValueError:
+                continue
+    return out
+
+
+def _identity(ctl: Any) -> str:
+    return f"GRBL {ctl.version}"
+
+
+def _set_origin(ctl: Any, ax: AxisConfig, dev: DeviceConfig) -> OriginReading:
+    """``G10 L20`` on a connected controller, read back with ``$#``."""
+    from m2s2hil.protocols.grbl import AXES
+
+    letter = ax.axis.upper()
+    with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+        st = ctl.status()
+        if st.state == "Alarm":
+            # The operator is placing the zero by hand: the controller's old position does
+            # not matter any more, so unlocking ($X) is safe here.
+            st = ctl.clear_alarm(home=False)
+        if st.moving:
+            raise RigOpenError(ax.device, dev.port, "device error",
+                               f"the controller is busy ({st.state_text})",
+                               "wait until the axis stands still")
+        ctl.command(f"G10 L20 P1 {letter}0")
+        g54 = work_offsets(ctl).get("G54")
+        here = ctl.axis_position(letter)
+    i = AXES.index(letter)
+    if g54 is None or abs(g54[i] - here) > OFFSET_TOLERANCE_UNITS:
+        raise RigOpenError(ax.device, dev.port, "device error",
+                           f"after G10 L20 the controller reports G54 {g54} with the axis at {here}",
+                           "run `m2s2hil rig probe` and check the controller's firmware")
+    return OriginReading(letter, _identity(ctl), float(g54[i]))
+
+
+def _stored_origin(ctl: Any, role: str, ax: AxisConfig, dev: DeviceConfig) -> OriginReading:
+    """Not in alarm (an alarm means the position is not trusted), and the G54 offset from ``$#``."""
+    from m2s2hil.protocols.grbl import AXES
+
+    st = ctl.status()
+    if st.state == "Alarm":
+        if ctl.settings.get(22):
+            raise RigOpenError(
+                ax.device, dev.port, "alarm",
+                "the controller has homing on ($22=1) and boots locked, but the rig file says "
+                f"{role} has no switches (homing = \"none\")",
+                "set $22=0 (`m2s2hil rig probe FILE --apply`) or homing = \"switches\"")
+        raise RigOpenError(ax.device, dev.port, "alarm",
+                           f"the controller is in alarm (last ALARM:{int(ctl.last_alarm or 0)}); "
+                           f"{role}'s position is not trusted", None)
+    g54 = work_offsets(ctl).get("G54")
+    if g54 is None:
+        raise RigOpenError(ax.device, dev.port, "device error", "`$#` reported no G54 offset")
+    letter = ax.axis.upper()
+    return OriginReading(letter, _identity(ctl), g54[AXES.index(letter)])
+
+
+def _use_origin(axis: Any, offset_units: float) -> None:
+    from m2s2hil.drivers.grbl import GrblAxis
+
+    if isinstance(axis, GrblAxis):  # moves in G53 machine coordinates, plus the G54 offset
+        axis.origin_units = offset_units
+
+
 KIND = MotionKind(
     protocol="grbl",
     title="GRBL",
     make_simulator=_simulator,
     open_axes=_open_axes,
     home=_home,
+    controller=_controller,
+    set_origin=_set_origin,
+    stored_origin=_stored_origin,
+    use_origin=_use_origin,
     probe=_probe,
     explain=_explain,
     # A soft reset (0x18) is answered with the ``Grbl 1.1h ['$' for help]`` banner; any line

@@ -32,6 +32,9 @@ if TYPE_CHECKING:
 
 Role = Literal["motion", "relay", "camera"]
 
+#: How far (machine units) a controller's stored origin may differ from the recorded one.
+OFFSET_TOLERANCE_UNITS = 1e-3
+
 
 @dataclass(frozen=True)
 class Setup:
@@ -101,14 +104,42 @@ class DeviceKind:
         return FAULT_KINDS_BY_DEVICE[self.protocol]
 
 
+@dataclass(frozen=True)
+class OriginReading:
+    """An axis origin as its controller holds it: the axis as the controller names it (GRBL
+    letter, Zaber number), what the controller says it is, and the offset in machine units."""
+
+    axis: str
+    controller: str
+    offset_units: float
+
+
+def _no_offset(axis: Any, offset_units: float) -> None:
+    """An axis whose controller counts from the origin itself: nothing for the driver to add."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class MotionKind(DeviceKind):
-    """A motion controller serving one or more axes."""
+    """A motion controller serving one or more axes.
+
+    The origin hooks serve axes without switches (:mod:`m2s2hil.rig.origin`): both take a
+    connected controller, the axis's and its device's configuration, and raise
+    :class:`~m2s2hil.rig.open_errors.RigOpenError` where the controller cannot be trusted.
+    """
 
     #: Connect and make the axes of :attr:`Setup.axes`: ``(controller, axes by role)``.
     open_axes: Callable[[Setup], tuple[Any, dict[str, RotaryAxis]]]
     #: Home the axes that have switches (``homing = "switches"``), given by role.
     home: Callable[[Any, Mapping[str, Any]], None]
+    #: The controller, not yet connected, on a connection of its own (``rig origin`` from the
+    #: command line).
+    controller: Callable[[Setup], Any]
+    #: Make where the axis stands its zero on the controller, read back.
+    set_origin: Callable[[Any, AxisConfig, DeviceConfig], OriginReading]
+    #: The origin the controller holds now, when the rig opens: ``(controller, role, axis, device)``.
+    stored_origin: Callable[[Any, str, AxisConfig, DeviceConfig], OriginReading]
+    #: Make the axis driver count from an origin offset (machine units).
+    use_origin: Callable[[Any, float], None] = _no_offset
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -3,6 +3,11 @@
 ``rig probe`` reads, per axis, ``maxspeed``, ``accel``, ``limit.min`` and ``limit.max`` in the
 device's data units, converted as the driver converts them. The driver writes these when the
 rig opens, so a mismatch only says the stored values differ.
+
+An axis without switches gets its origin with ``set pos 0``: the current place becomes
+position 0 without moving (the ``pos`` setting is writable: Zaber ASCII Protocol Manual,
+firmware 7, "pos"). When the rig opens the device must be the one the origin was set on (its
+serial number) and show no fault flag.
 """
 
 from __future__ import annotations
@@ -11,11 +16,11 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-from m2s2hil.config import AxisConfig
+from m2s2hil.config import AxisConfig, DeviceConfig
 from m2s2hil.drivers.interfaces import RotaryAxis
 from m2s2hil.rig.devices.findings import Finding, ProbeReport
-from m2s2hil.rig.devices.kind import MotionKind, Setup, Signature, SimParts, close_quietly
-from m2s2hil.rig.open_errors import opening
+from m2s2hil.rig.devices.kind import MotionKind, OriginReading, Setup, Signature, SimParts, close_quietly
+from m2s2hil.rig.open_errors import RigOpenError, opening
 
 
 def _simulator(setup: Setup, parts: SimParts) -> Any:
@@ -56,12 +61,40 @@ _EFFECTS = {
 }
 
 
-def _probe(setup: Setup, report: ProbeReport, apply: bool) -> None:
+def _controller(setup: Setup) -> Any:
     from m2s2hil.drivers.zaber import ZaberDevice
 
+    dev = setup.device
+    return ZaberDevice(dev.port, device=setup.name, address=dev.unit, baudrate=dev.baudrate,
+                       timeout_s=dev.timeout_s, clock=setup.clock, retries=dev.retries)
+
+
+def _identity(zd: Any) -> str:
+    return f"Zaber {zd.info.get('deviceid', '?')} serial {zd.info.get('system.serial', '?')}"
+
+
+def _set_origin(zd: Any, ax: AxisConfig, dev: DeviceConfig) -> OriginReading:
+    """``set pos 0`` on a connected device, read back."""
+    with opening(ax.device, dev.port, dev.protocol, dev.baudrate):
+        number = int(ax.axis)
+        zd.request(number, "set pos 0", check_faults=False)
+        pos = zd.get("pos", number)
+    if pos.strip() != "0":
+        raise RigOpenError(ax.device, dev.port, "device error", f"after set pos 0 the axis reports {pos}")
+    return OriginReading(str(number), _identity(zd), 0.0)
+
+
+def _stored_origin(zd: Any, role: str, ax: AxisConfig, dev: DeviceConfig) -> OriginReading:
+    """No fault flag on the axis; the position counts from the origin itself (offset 0)."""
+    reply = zd.request(int(ax.axis), "", idempotent=True, check_faults=False)
+    if reply.fault:
+        raise RigOpenError(ax.device, dev.port, "alarm", f"axis {ax.axis} reports fault {reply.warning}")
+    return OriginReading(str(int(ax.axis)), _identity(zd), 0.0)
+
+
+def _probe(setup: Setup, report: ProbeReport, apply: bool) -> None:
     name, dev = setup.name, setup.device
-    zd = ZaberDevice(dev.port, device=name, address=dev.unit, baudrate=dev.baudrate, timeout_s=dev.timeout_s,
-                     clock=setup.clock, retries=dev.retries)
+    zd = _controller(setup)
     add = report.findings.append
     try:
         with opening(name, dev.port, dev.protocol, dev.baudrate):
@@ -96,6 +129,9 @@ KIND = MotionKind(
     make_simulator=_simulator,
     open_axes=_open_axes,
     home=_home,
+    controller=_controller,
+    set_origin=_set_origin,
+    stored_origin=_stored_origin,
     probe=_probe,
     # A status poll (``/``) is answered ``@nn a OK IDLE -- 0`` by every Zaber device
     # (Zaber ASCII protocol manual, "Reply messages").

@@ -1,0 +1,116 @@
+"""The one-pass dark + saturation + super-pixel path equals the two-step chain it replaces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from m2s2hil.config import CameraModel
+from m2s2hil.processing.chain import FrameProcessor
+from m2s2hil.processing.dark import build_master_dark, subtract_dark
+from m2s2hil.processing.errors import FrameShapeError
+from m2s2hil.processing.groundtruth import mosaic_of, synthetic_scene
+from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.processing.stability import (
+    cell_mask,
+    check_phase,
+    low_light_warning,
+    phase_warning,
+    saturation_warning,
+)
+from m2s2hil.processing.superpixel import SuperPixelDemosaicer
+
+CAM = CameraModel(width=64, height=48)  # 12 cell rows: the QC rows are cell rows 0 and 8
+LAYOUT = MosaicLayout.from_camera(CAM)
+FS = CAM.full_scale
+
+
+def _two_step(raw, dark, read_noise=None):
+    """(cube, cell mask, warnings) the way the chain computed them before the fused kernel."""
+    if dark is None:
+        corrected, sat = raw, raw >= FS
+    else:
+        corrected, sat = subtract_dark(raw, dark, full_scale=FS)
+    cube = SuperPixelDemosaicer(LAYOUT, raw.shape).process(corrected).copy()
+    warnings = [
+        w for w in (saturation_warning(sat, FS, 0), phase_warning(check_phase(corrected, LAYOUT))) if w
+    ]
+    if dark is not None:
+        msg = low_light_warning(corrected, read_noise, LAYOUT.n)
+        if msg:
+            warnings.append(msg)
+    return cube, cell_mask(sat, LAYOUT.n), warnings
+
+
+def _random_dark(rng, high, shape=(48, 64)):
+    frames = rng.integers(0, high, (3, *shape), dtype=np.uint16)
+    return build_master_dark(frames, exposure_s=0.01, gain=1.0, temperature_c=25.0)
+
+
+@pytest.mark.timeout(600)  # compiles the kernel on a cold numba cache
+@pytest.mark.parametrize("seed", range(6))
+def test_fused_equals_two_step_on_random_frames(seed):
+    rng = np.random.default_rng(seed)
+    # darks up to 300 DN over raw values down to 0: many negative differences, clipped at 0
+    dark = _random_dark(rng, 300)
+    raw = rng.integers(0, FS + 1, (48, 64), dtype=np.uint16)
+    raw[rng.random(raw.shape) < 0.02] = FS  # the 10-bit maximum: saturated
+    raw[rng.random(raw.shape) < 0.005] = 65535  # above full scale (a corrupt pixel) counts too
+    raw[rng.random(raw.shape) < 0.05] = 0
+    fp = FrameProcessor("superpixel", CAM, dark=dark)
+    frame = fp.process(raw)
+    cube, mask, warnings = _two_step(raw, dark, dark.read_noise_dn)
+    np.testing.assert_array_equal(frame.cube, cube)
+    np.testing.assert_array_equal(frame.saturated_mask, mask)
+    assert frame.warnings == warnings and any("full scale" in w for w in warnings)
+    assert (cube == 0).any() and mask.any()  # the clipped differences and the flags were exercised
+
+
+def test_fused_clears_the_mask_and_handles_no_dark():
+    rng = np.random.default_rng(7)
+    fp = FrameProcessor("superpixel", CAM)
+    hot = rng.integers(0, FS, (48, 64), dtype=np.uint16)
+    hot[5, 7] = FS
+    frame = fp.process(hot)
+    assert frame.saturated_mask[1, 1] and frame.saturated_mask.sum() == 1
+    cool = np.minimum(hot, FS - 1)  # the next frame: nothing clipped, the mask must clear
+    frame = fp.process(cool)
+    cube, mask, warnings = _two_step(cool, None)
+    np.testing.assert_array_equal(frame.cube, cube)
+    np.testing.assert_array_equal(frame.saturated_mask, mask)
+    assert not frame.saturated_mask.any() and frame.warnings == warnings == []
+
+
+def test_fused_keeps_the_qc_warnings():
+    """Phase and low-light checks see the same rows of the corrected mosaic as before."""
+    scene = synthetic_scene(CAM, 64, seed=3)
+    cube_in = scene.cube[:, :48, :64]
+    dark = build_master_dark(
+        np.clip(np.rint(np.random.default_rng(9).normal(30, 3.0, (8, 48, 64))), 0, None).astype(np.uint16),
+        exposure_s=0.01,
+        gain=1.0,
+        temperature_c=25.0,
+    )
+    for raw in (
+        mosaic_of(cube_in + 30, LAYOUT, FS, offset=(0, 1)),  # phase error
+        mosaic_of(cube_in * (10.0 / cube_in.max()) + 30, LAYOUT, FS, read_noise_dn=3.0),  # dim
+    ):
+        frame = FrameProcessor("superpixel", CAM, dark=dark).process(raw)
+        cube, mask, warnings = _two_step(raw, dark, dark.read_noise_dn)
+        np.testing.assert_array_equal(frame.cube, cube)
+        np.testing.assert_array_equal(frame.saturated_mask, mask)
+        assert frame.warnings == warnings and warnings
+
+
+def test_process_raw_refuses_mismatched_buffers():
+    sp = SuperPixelDemosaicer(LAYOUT, (48, 64))
+    raw = np.zeros((48, 64), np.uint16)
+    ok = np.zeros((12, 16), bool)
+    with pytest.raises(FrameShapeError):
+        sp.process_raw(raw, np.zeros((48, 60), np.uint16), FS, ok)
+    with pytest.raises(FrameShapeError):
+        sp.process_raw(raw, None, FS, np.zeros((12, 15), bool))
+    with pytest.raises(FrameShapeError):
+        sp.process_raw(raw, None, FS, ok, np.zeros((1, 4, 64), np.uint16))  # needs 2 QC rows
+    with pytest.raises(FrameShapeError):
+        sp.process_raw(raw[:, ::-1], None, FS, ok)
