@@ -190,6 +190,9 @@ def test_an_emergency_stop_survives_kill_9_and_a_restart(tmp_path) -> None:
                "releases it (POST /queue/release)" in log
         assert d.http.get("/healthz").json()["held"] == "emergency stop"
         _stays_held(d, root, waiting, "emergency stop")
+        # Homing is motion too: the axes with switches were not homed at the held start.
+        assert "axes with switches are not homed now" in d.log.read_text()
+        assert "deferred while the rig was held" not in d.log.read_text()
         r = d.http.post(f"/sessions/{stopped}/resume")
         assert r.status_code == 409 and "POST /queue/release" in r.json()["detail"]
 
@@ -197,6 +200,7 @@ def test_an_emergency_stop_survives_kill_9_and_a_restart(tmp_path) -> None:
         for sid in waiting:
             st = d.wait(sid, lambda s: s["state"] in ("completed", "failed", "aborted"))
             assert st["state"] == "completed"
+        assert "homed turntable, tilt (deferred while the rig was held)" in d.log.read_text()
         d.stop()
     assert not (root / HOLD_NAME).exists()
     assert [_journal(root, sid)[:2] for sid in waiting] == [("completed", 1)] * 2

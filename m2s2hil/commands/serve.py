@@ -65,6 +65,7 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     from m2s2hil.api.http_server import server_limits
     from m2s2hil.api.streams import StreamLimits
     from m2s2hil.config import load_rig
+    from m2s2hil.daemon.hold import HoldFile
     from m2s2hil.daemon.manager import SessionManager
     from m2s2hil.daemon.rootlock import lock_data_root
     from m2s2hil.engine.build import open_capture_rig
@@ -79,13 +80,20 @@ def run_daemon(settings: ServeSettings, *, access_log: bool = False) -> None:
     log.info("opening rig %r (%s)", cfg.rig.name, settings.rig or "built-in simulated rig")
     # A device that cannot be opened: RigOpenError, one line naming it, the port and the cause
     # (exit 6 unreachable, 7 unusable: m2s2hil.rig.open_errors); anything else RigUnavailable (exit 1).
-    rig = open_capture_rig(cfg, realtime=settings.realtime, seed=settings.seed,
+    # A hold left on the data root (an e-stop, an operator's hold) is in force from the start:
+    # homing is motion, so axes with switches are homed only when the first session starts
+    # after an operator released it.
+    held = HoldFile(settings.data_root).load() is not None
+    if held:
+        log.info("the data root holds the rig: axes with switches are not homed now, but before "
+                 "the first session after a release")
+    rig = open_capture_rig(cfg, realtime=settings.realtime, seed=settings.seed, home=not held,
                            source=str(settings.rig) if settings.rig is not None else None)
     try:
         manager = SessionManager(
             rig, settings.data_root, queue_limit=settings.queue_limit,
             max_plan_frames=settings.max_plan_frames, estop_grace_s=settings.estop_grace_s,
-            estop_timeout_s=settings.estop_timeout_s, root_lock=root_lock,
+            estop_timeout_s=settings.estop_timeout_s, root_lock=root_lock, home_deferred=held,
         )
         app = create_app(
             manager, token=token, cors_origins=settings.cors_origins, allowed_hosts=settings.host_names(),

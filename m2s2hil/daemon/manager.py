@@ -86,6 +86,7 @@ class SessionManager:
         estop_grace_s: float = 0.5,
         estop_timeout_s: float = 30.0,
         root_lock: IO[str] | None = None,
+        home_deferred: bool = False,
     ) -> None:
         self.rig = rig
         self.root = Path(root)
@@ -108,6 +109,8 @@ class SessionManager:
         self._lockfile: IO[str] | None = root_lock  # from lock_data_root(), or taken by start()
         self._shutdown_reason: str | None = None
         self._closed: dict | None = None
+        #: The rig opened under a hold, its axes with switches not homed: done before the first session.
+        self._home_deferred = home_deferred
         #: The rig's door for request threads and the emergency stop.
         self.guard = RigGuard(self, estop_grace_s=estop_grace_s, estop_timeout_s=estop_timeout_s)
         #: Status, listings, frames and journals for the clients.
@@ -237,6 +240,9 @@ class SessionManager:
                     self._finish(job, "failed")
 
     def _launch(self, job: Job) -> None:
+        if self._home_deferred:  # released since the daemon started held: now the axes may move
+            self.guard.home_switched_axes()
+            self._home_deferred = False
         runs = sum(1 for e in job.store.events() if e.get("kind") == "run_started")
         # The same builder as `capture`: processing, capture-time QC, the fault policy, the rig check.
         engine = build_run(self.rig, store=job.store, options=self.engine_options, policy=self.policy,

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 from m2s2hil.engine.runner import Engine
 from m2s2hil.engine.state import RunState
 from m2s2hil.rig.opened import Rig
+from m2s2hil.rig.operations import RigOps
 
 from . import estop, listing
 from .errors import HoldNotSaved
@@ -55,6 +56,20 @@ class RigGuard:
                 except Exception as exc:
                     log.warning("before-session hook failed: %s", exc)
             engine.start()
+
+    def home_switched_axes(self) -> list[str]:
+        """Home the axes that have switches (deferred when the daemon started held); those
+        without switches keep the origin checked when the rig opened. Returns the axes homed."""
+        cfg = self.rig.config
+        homed: list[str] = []
+        with self.hw:
+            ops = RigOps(self.rig)
+            for link in self.rig.links:
+                if any(cfg.axes[r].homing == "switches" for r in link.axis_roles):
+                    homed.extend(ops.home(link.device))
+        if homed:
+            log.info("homed %s (deferred while the rig was held)", ", ".join(homed))
+        return homed
 
     def park(self) -> tuple[SafeCheck, list[str]]:
         """Lamps off and axes stopped (the daemon's shutdown), then read back."""
