@@ -15,6 +15,7 @@ from m2s2hil.drivers.errors import MoveStalled
 from m2s2hil.simulators.clock import VirtualClock
 from m2s2hil.simulators.fault_injection import FAULT_KINDS_BY_DEVICE, FaultPlan
 
+import m2s2hil.rig.devices
 from m2s2hil.config import PROTOCOLS, DeviceProtocol, RigConfig, default_rig, parse_rig
 from m2s2hil.errors import ConfigError
 from m2s2hil.rig.devices import CAMERA, KINDS, kind_of
@@ -137,3 +138,12 @@ def test_a_rig_files_timeout_margin_decides_when_a_slow_move_is_overdue(protocol
 def test_move_timing_keys_are_bounded(key, value):
     with pytest.raises(ConfigError, match=key):
         _rig_with("grbl", **{key: value})
+
+
+@pytest.mark.parametrize("module", ["factory", "probe", "open_errors", "origin"])
+def test_the_rig_code_that_asks_the_registry_names_no_protocol(module):
+    """A device kind lives in its registry module: the code that asks the registry has no
+    branch on a protocol's name (a new kind then needs no edit there)."""
+    text = (Path(m2s2hil.rig.devices.__file__).parent.parent / f"{module}.py").read_text()
+    named = set(re.findall(r'"([a-z0-9-]+)"', text)) & {*KINDS, *PROTOCOLS}
+    assert not named, f"rig/{module}.py names {sorted(named)}"
