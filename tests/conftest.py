@@ -1,4 +1,4 @@
-"""Shared fixtures, the numba cache of each test process, and how tests share xdist workers."""
+"""Shared fixtures, the numba cache of each test process, and which tests share an xdist worker."""
 
 from __future__ import annotations
 
@@ -24,29 +24,15 @@ def pytest_configure(config: pytest.Config) -> None:
         use_private_numba_cache(worker=hasattr(config, "workerinput"))
 
 
-#: Modules that compile the numba kernels of every demosaicing method and calibration (about
-#: 45 s on a cold cache, as in CI's fresh clone): one worker compiles them, not both. The
-#: kernels of a capture with the default method are compiled by every worker that captures.
-KERNEL_MODULES = frozenset({"test_demosaic.py", "test_calibration.py", "test_processing_pipeline.py",
-                            "test_processing_stability.py"})
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist (the test extra): ignored without it
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object | None:
+    """With ``-n N`` (``--dist load``): tests that share a module's fixture, or compile the
+    same numba kernels, run on one worker (tests/xdist_groups.py)."""
+    if config.getvalue("dist") != "load":
+        return None  # an explicit --dist loadfile, each, ... is xdist's own
+    from xdist_groups import GroupedScheduling
 
-
-@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups (--dist loadgroup)
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Tests that share a module- or class-scoped fixture go to one xdist worker, so the fixture
-    (a simulated capture, a plan expansion) is built once rather than once per worker; so do
-    the tests of :data:`KERNEL_MODULES`."""
-    for item in items:
-        info = getattr(item, "_fixtureinfo", None)
-        if info is None or item.get_closest_marker("xdist_group"):
-            continue
-        if item.path.name in KERNEL_MODULES:
-            item.add_marker(pytest.mark.xdist_group("numba-kernels"))
-            continue
-        shared = any(defs[-1].scope in ("module", "class") and defs[-1].baseid != ""
-                     for defs in info.name2fixturedefs.values())
-        if shared:
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+    return GroupedScheduling(config, log)
 
 
 @pytest.fixture

@@ -8,15 +8,15 @@ import pytest
 pytest.importorskip("bluesky", reason="the bluesky extra (bluesky, ophyd-async) is not installed")
 pytest.importorskip("ophyd_async", reason="the bluesky extra (bluesky, ophyd-async) is not installed")
 
-from bluesky import RunEngine  # noqa: E402
-from engine_helpers import assert_rig_safe, session, small_rig_config, small_sweep  # noqa: E402
-from ophyd_async.plan_stubs import ensure_connected  # noqa: E402
+from bluesky import RunEngine
+from engine_helpers import assert_rig_safe, session, small_rig_config, small_sweep
+from ophyd_async.plan_stubs import ensure_connected
 
-from m2s2hil.integrations.bluesky.devices import OutOfLimits, rig_devices  # noqa: E402
-from m2s2hil.integrations.bluesky.plans import m2s2_sweep  # noqa: E402
-from m2s2hil.integrations.documents import DocumentCatalogue  # noqa: E402
-from m2s2hil.rig.factory import open_simulated_rig  # noqa: E402
-from m2s2hil.store.session import SessionStore  # noqa: E402
+from m2s2hil.integrations.bluesky.devices import OutOfLimits, rig_devices
+from m2s2hil.integrations.bluesky.plans import m2s2_sweep
+from m2s2hil.integrations.documents import DocumentCatalogue
+from m2s2hil.rig.factory import open_simulated_rig
+from m2s2hil.store.session import SessionStore
 
 
 @pytest.fixture
@@ -51,8 +51,8 @@ def test_sweep_as_a_bluesky_plan_writes_what_capture_writes(tmp_path, bench):
         eid = ev["data"]["camera_event_id"]
         raw, _ = store.read_raw(eid)
         assert np.array_equal(run.read(ev, "camera_raw"), raw)  # the document leads to the stored frame
-        assert abs(ev["data"]["turntable_readback"] - ev["data"]["camera_azimuth_deg"]) <= 0.05
-        assert ev["data"]["lamps_preset"] == "weak"
+        assert abs(ev["data"]["turntable-readback"] - ev["data"]["camera_azimuth_deg"]) <= 0.05
+        assert ev["data"]["lamps-preset"] == "weak"
     assert not store.verify()
     # capture of the same sweep: the same frame events, each with the same files
     with session(tmp_path / "cap", small_sweep(), config=small_rig_config(64)) as (_, cstore, engine, _):

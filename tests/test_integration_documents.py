@@ -8,9 +8,9 @@ from shared_sessions import export_session_of
 
 pytest.importorskip("event_model", reason="the documents extra (event-model) is not installed")
 
-from event_model import DocumentNames, schema_validators  # noqa: E402
+from event_model import DocumentNames, schema_validators
 
-from m2s2hil.integrations.documents import DocumentCatalogue, DocumentError, session_documents  # noqa: E402
+from m2s2hil.integrations.documents import DocumentCatalogue, DocumentError, session_documents
 
 
 @pytest.fixture

@@ -43,7 +43,7 @@ def test_session_opens_as_cube_and_raw(hubble):
     reader = get_reader(str(hubble.path))
     assert reader is read_session
     layers = reader(str(hubble.path))
-    (cube, ck, ct), (raw, rk, rt) = layers[:2]
+    (cube, ck, ct), (raw, _rk, rt) = layers[:2]
     with hubble.open() as st:
         m = st.rig.camera.model
         ids = [fr.event_id for fr in st.frames()]
@@ -80,3 +80,22 @@ def test_zarr_export_opens_with_labels(tmp_path, hubble):
     assert len(layers) == 2  # no ground truth in this session: no labels layer
     assert np.array_equal(superpixel_bands(labels[None].astype(np.uint16), layout, model.n_bands).shape,
                           (1, model.n_bands, 16, 16))
+
+
+@pytest.mark.timeout(120)
+def test_a_captured_session_opens_with_its_ground_truth_labels(tmp_path):
+    from engine_helpers import session, small_rig_config, small_sweep
+
+    with session(tmp_path, small_sweep(), config=small_rig_config(64)) as (_, store, engine, _):
+        engine.run()
+        path = store.path
+        frames = store.frames()
+        truth = [store.read_file(fr.files["truth_labels"]) for fr in frames]
+    layers = get_reader(str(path))(str(path))
+    labels, _lk, lt = layers[-1]
+    assert lt == "labels" and labels.shape == (len(frames), 64, 64)
+    from m2s2hil.store.frame_files import decode_image
+
+    for i, data in enumerate(truth):
+        assert np.array_equal(labels[i], decode_image(data))
+    assert labels.max() > 0  # the mockup is in view: some pixel is a material

@@ -170,9 +170,6 @@ class SlotEventSource(EventSourceResponse):
             if rest is not None:
                 raise rest from None
             log.info("dropped one of the %s: it stopped reading", self.slot.what)
-        except BaseException as e:
-            print("SSEDBG exc", repr(e)); raise
         finally:
-            print("SSEDBG finally", self.active)
             await _close(self.body_iterator)
             self.slot.release()

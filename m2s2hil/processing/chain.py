@@ -47,7 +47,8 @@ class FrameProcessor:
     ``threads`` caps numba's worker threads for this processor's kernels (numba's setting is per
     calling thread, so other threads are unaffected). ``None`` uses every core, the fastest on an
     idle machine; 1 avoids waiting on a busy core, e.g. when capture and storage threads share
-    the two cores with processing (see docs/benchmarks.md, single-thread table).
+    the two cores with processing (see docs/benchmarks.md, single-thread table). Super-pixel runs
+    dark, flags and demosaicing in one serial pass instead (``_process_fused``; docs/processing.md).
     The MSFA phase check (0.2–0.5 ms) runs on the first frame and then every
     ``check_phase_every`` frames (0: never): a phase error is a readout setting, not a per-frame event.
     """

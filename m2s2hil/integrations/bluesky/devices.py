@@ -85,7 +85,8 @@ class LampPresets(StandardReadable):
     def __init__(self, ops: RigOps, name: str = "lamps") -> None:
         self._ops = ops
         cfg = ops.rig.config
-        self.presets = {p: frozenset(cfg.lamps[n].channel for n in names) for p, names in cfg.lighting.items()}
+        self.presets = {p: frozenset(cfg.lamps[n].channel for n in names)
+                        for p, names in cfg.lighting.items()}
         with self.add_children_as_readables(StandardReadableFormat.HINTED_SIGNAL):
             self.preset, self._set_preset = soft_signal_r_and_setter(str, initial_value="")
         with self.add_children_as_readables():
@@ -117,6 +118,15 @@ class M2S2Camera(StandardReadable):
             self.exposure_s = soft_signal_rw(float, initial_value=0.01, units="s")
             self.gain = soft_signal_rw(float, initial_value=0.0)
         super().__init__(name=name)
+
+    @property
+    def store(self) -> SessionStore:
+        """The session its frames go into."""
+        return self._store
+
+    @property
+    def rig(self) -> Rig:
+        return self._stages.rig
 
     def prepare_event(self, event: CaptureEvent) -> None:
         """The sweep event the next trigger captures (its id names the frame in the session)."""

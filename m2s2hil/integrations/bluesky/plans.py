@@ -33,8 +33,8 @@ def m2s2_sweep(sat: str, build: str, light: str | list[str], *, turntable: RigAx
     base = sweep or Sweep(satellite=sat, build=build, lighting=lights)
     sw = base.model_copy(update={"satellite": sat, "build": build, "lighting": lights})
     load_catalog().build(sat, build)  # an unknown satellite or build fails before anything moves
-    store = camera._store
-    rig = camera._stages.rig
+    store = camera.store
+    rig = camera.rig
     events = [ev for ev in sw.expand(rig.config) if ev.kind == "frame"]
     detectors = [camera, turntable, tilt, lamps]
     meta = {"plan_name": "m2s2_sweep", "plan_args": {"sat": sat, "build": build, "light": lights},
