@@ -26,11 +26,11 @@ HEADERS = {"X-M2S2HIL": "1"}
 @contextlib.contextmanager
 def served(app: Any, **limits: Any) -> Iterator[int]:
     """``app`` on uvicorn (in a thread) with the daemon's server limits; yields the port."""
-    kw = {"header_timeout_s": 10.0, "keep_alive_s": 5.0, "max_header_bytes": 16 * 1024, "max_connections": 1000,
-          **limits}
+    kw = {"header_timeout_s": 10.0, "keep_alive_s": 5.0, "max_header_bytes": 16 * 1024,
+          "max_connections": 1000, **limits}
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="off",
-                                           **server_limits(**kw)))
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                                           lifespan="off", **server_limits(**kw)))
     t = threading.Thread(target=server.run, daemon=True)
     t.start()
     deadline = time.monotonic() + 20

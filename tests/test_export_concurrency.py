@@ -27,7 +27,8 @@ def _leftovers(out: Path) -> list[Path]:
 
 
 def _tree(folder: Path) -> dict[str, int]:
-    return {p.relative_to(folder).as_posix(): p.stat().st_ino for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {p.relative_to(folder).as_posix(): p.stat().st_ino
+            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 _HOLDER = """
@@ -89,6 +90,7 @@ def test_an_export_in_another_process_refuses_this_one(shared_sessions, tmp_path
     assert not out.exists()
 
 
+@pytest.mark.slow  # a child interpreter per layout, killed mid-export: seconds each
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_a_killed_export_leaves_nothing_that_looks_complete(shared_sessions, tmp_path, layout) -> None:
     written = export_session_of(shared_sessions)
@@ -124,7 +126,8 @@ def test_the_cli_export_adds_to_a_folder_and_overwrites_in_place(shared_sessions
         args = ["--overwrite"] if w is a and (out / "metadata" / f"{b.session_id}.json").exists() else []
         cli = run_cli("export", w.session_id, "--root", w.root, "--out", out, *args)
         assert cli.exit_code == 0, cli.output
-    assert {p.name for p in (out / "metadata").glob("*.csv")} == {f"{a.session_id}.csv", f"{b.session_id}.csv"}
+    csvs = {p.name for p in (out / "metadata").glob("*.csv")}
+    assert csvs == {f"{a.session_id}.csv", f"{b.session_id}.csv"}
     assert len(list((out / "HIL").rglob("*.png"))) == 32
     assert not _leftovers(out)
 

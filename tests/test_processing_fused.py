@@ -114,3 +114,39 @@ def test_process_raw_refuses_mismatched_buffers():
         sp.process_raw(raw, None, FS, ok, np.zeros((1, 4, 64), np.uint16))  # needs 2 QC rows
     with pytest.raises(FrameShapeError):
         sp.process_raw(raw[:, ::-1], None, FS, ok)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_low_light_percentile_from_histogram_is_exact(seed):
+    """uint16 mosaics take the histogram route, float ones np.partition: the same 95th percentile."""
+    rng = np.random.default_rng(seed)
+    mosaic = rng.integers(0, 12 + 40 * seed, (48, 64), dtype=np.uint16)
+    got = low_light_warning(mosaic, 100.0, LAYOUT.n)
+    assert got is not None and got == low_light_warning(mosaic.astype(np.float32), 100.0, LAYOUT.n)
+
+
+@pytest.mark.parametrize(
+    "pattern",
+    [
+        [[0, 1, 2], [3, 4, 5], [6, 7, 0]],  # n = 3: the general path
+        [[0, 0, 1, 2], [0, 3, 4, 5], [6, 7, 8, 9], [1, 2, 3, 4]],  # n = 4, a band on 3 positions
+        [[0, 1], [1, 0]],
+    ],
+)
+def test_process_raw_equals_two_step_for_other_layouts(pattern):
+    layout = MosaicLayout.from_pattern(np.array(pattern), int(np.max(pattern)) + 1)
+    n = layout.n
+    rng = np.random.default_rng(n)
+    shape = (12 * n, 10 * n)
+    raw = rng.integers(0, FS + 1, shape, dtype=np.uint16)
+    dark = rng.integers(0, 200, shape, dtype=np.uint16)
+    corrected, sat = subtract_dark(raw, dark, full_scale=FS)
+    expected = SuperPixelDemosaicer(layout, shape).process(corrected).copy()
+    sp = SuperPixelDemosaicer(layout, shape)
+    cells = np.empty(sp.out_shape[1:], bool)
+    qc = np.empty((2, n, shape[1]), np.uint16)
+    cube, n_sat = sp.process_raw(raw, dark, FS, cells, qc)
+    np.testing.assert_array_equal(cube, expected)
+    np.testing.assert_array_equal(cells, cell_mask(sat, n))
+    np.testing.assert_array_equal(qc, corrected.reshape(12, n, shape[1])[::8])
+    assert n_sat == int(sat.sum()) > 0

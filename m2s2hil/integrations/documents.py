@@ -112,7 +112,8 @@ def session_documents(store: SessionStore) -> Iterator[tuple[str, dict[str, Any]
         data_keys={"raw": raw_data_key("m2s2hil.camera", m.height, m.width), **_scalar_keys(FRAME_SCALARS)})
     dark = run.compose_descriptor(
         name="dark", uid=_uid(sid, "dark"), time=min(times),
-        data_keys={"master": {**raw_data_key("m2s2hil.darks", m.height, m.width), "dtype_numpy": "<f4"},
+        data_keys={"master": {**raw_data_key("m2s2hil.darks", m.height, m.width),
+                              "dtype_numpy": _dark_dtype(store, darks)},
                    **_scalar_keys(DARK_SCALARS)})
     yield "descriptor", dict(primary.descriptor_doc)
     yield "descriptor", dict(dark.descriptor_doc)
@@ -128,6 +129,17 @@ def session_documents(store: SessionStore) -> Iterator[tuple[str, dict[str, Any]
     yield "stop", dict(run.compose_stop(uid=_uid(sid, "stop"), time=max(times),
                                         exit_status="success" if state == "completed" else "abort",
                                         reason="" if state == "completed" else f"session is {state}"))
+
+
+def _dark_dtype(store: SessionStore, darks: list[Any]) -> str:
+    """The numpy dtype of the stream's master darks as their files hold them: uint16 when every
+    one is (the compressed format's whole-DN darks), else float32, which holds those exactly too
+    (a consumer such as Tiled serves the declared dtype)."""
+    for d in darks:
+        with tifffile.TiffFile(store.path / d.files["master"].path) as tif:  # the header only
+            if tif.pages[0].dtype != np.uint16:
+                return "<f4"
+    return "<u2"
 
 
 def _external(run: Any, desc: Any, store: SessionStore, key: str, rel: str, sha256: str, seq: int,

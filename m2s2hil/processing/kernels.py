@@ -205,6 +205,46 @@ def superpixel_rows(src, pr, pc, band_start, band_count, out, cy_lo, cy_hi):
                     o[cx] *= inv
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy):
+    """The 4×4 case of one cell row: the n rows are split into one float32 plane per cell position
+    (a loop that reads all four phases of a cell vectorises; four loops with stride 4 do not: 2–3×
+    slower), then each band is the mean of its planes, in the same order of operations as the
+    general path (identical results)."""
+    kw = rows.shape[1] // 4
+    for py in range(4):
+        c = rows[py]
+        q0 = planes[4 * py]
+        q1 = planes[4 * py + 1]
+        q2 = planes[4 * py + 2]
+        q3 = planes[4 * py + 3]
+        for cx in range(kw):
+            q0[cx] = np.float32(c[4 * cx])
+            q1[cx] = np.float32(c[4 * cx + 1])
+            q2[cx] = np.float32(c[4 * cx + 2])
+            q3[cx] = np.float32(c[4 * cx + 3])
+    for b in range(band_start.shape[0]):
+        s = band_start[b]
+        cnt = band_count[b]
+        o = out[b, cy]
+        f = planes[4 * pr[s] + pc[s]]
+        if cnt == 2:
+            g = planes[4 * pr[s + 1] + pc[s + 1]]
+            for cx in range(kw):
+                o[cx] = (f[cx] + g[cx]) * np.float32(0.5)
+            continue
+        for cx in range(kw):
+            o[cx] = f[cx]
+        if cnt > 1:
+            for p in range(s + 1, s + cnt):
+                g = planes[4 * pr[p] + pc[p]]
+                for cx in range(kw):
+                    o[cx] += g[cx]
+            inv = np.float32(1.0 / cnt)
+            for cx in range(kw):
+                o[cx] *= inv
+
+
 @njit(cache=True, error_model="numpy")
 def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, out, cell_sat, qc, qc_step):
     """Dark subtraction, saturation flags and super-pixel in one pass over ``raw`` and ``dark``.
@@ -227,6 +267,7 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
     n_bands = band_start.shape[0]
     has_dark = dark.shape[0] == h
     rows = np.empty((n, w), np.uint16)
+    planes = np.empty((n * n, kw), np.float32)
     n_sat = 0
     for cy in range(h // n):
         row_sat = 0
@@ -260,6 +301,9 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
                 flags[cx] = hit
         if qc.shape[0] > 0 and cy % qc_step == 0:
             qc[cy // qc_step] = rows
+        if n == 4:
+            _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy)
+            continue
         for b in range(n_bands):
             s = band_start[b]
             cnt = band_count[b]

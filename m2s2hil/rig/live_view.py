@@ -111,6 +111,11 @@ class LiveRenderer:
         return LiveFrame(seq, buf.tobytes(), stats)
 
 
+def _set_all(events: list[asyncio.Event]) -> None:
+    for event in events:
+        event.set()
+
+
 class LiveViewBusy(RuntimeError):
     """The camera cannot be used for live view now (a session owns the rig)."""
 
@@ -161,11 +166,14 @@ class LiveStream:
     def _notify(self) -> None:
         """Wake every viewer (the caller holds ``_cond``)."""
         self._cond.notify_all()
-        for loop, event in list(self._waiters):
+        by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Event]] = {}
+        for loop, event in self._waiters:
+            by_loop.setdefault(loop, []).append(event)
+        for loop, events in by_loop.items():  # one wake-up per loop, not one per viewer
             try:
-                loop.call_soon_threadsafe(event.set)
-            except RuntimeError:  # its loop has closed: that viewer is gone
-                self._waiters.discard((loop, event))
+                loop.call_soon_threadsafe(_set_all, events)
+            except RuntimeError:  # its loop has closed: those viewers are gone
+                self._waiters -= {(loop, e) for e in events}
 
     @property
     def error(self) -> str | None:

@@ -61,15 +61,24 @@ def export(mg: Manager, session_id: SessionId, body: ExportIn) -> dict[str, Any]
     """Export the session's frames (``m2s2``: the published layout; ``hf``: a Hugging Face dataset
     with the exact raw values; ``zarr``: a chunked store xarray opens lazily) under
     ``<data root>/exports/<session>/<layout>/``: written beside it and renamed into place when
-    complete; while one export of the session and layout runs, another gets 409."""
+    complete; while one export of the session and layout runs, another gets 409. A session
+    without a frame yet, or one already exported (without ``overwrite``), is 409 too: the
+    request is valid, the session's state does not allow it."""
     from m2s2hil.daemon.export_lock import ExportBusy, export_once
+    from m2s2hil.store.export import ExportError
 
     out = mg.root / "exports" / session_id / body.layout
     try:
         with mg.reads.reading(session_id) as store:
+            if not store.frames():
+                raise Conflict(f"session {session_id} has no frames to export yet")
             # The folder is this session's alone: overwrite starts it afresh.
             result = export_once(store, out, body.layout, overwrite=body.overwrite, fresh=body.overwrite)
     except ExportBusy as exc:
         raise Conflict(str(exc)) from None
+    except ExportError as exc:
+        if out.exists() and not body.overwrite:
+            raise Conflict(str(exc)) from None
+        raise
     return {"session_id": session_id, "layout": body.layout, "folder": str(out), "images": result.images,
             "files": len(result.files)}

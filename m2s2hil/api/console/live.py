@@ -21,6 +21,8 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
+from m2s2hil.rig.live_view import LiveFrame
+
 from ..common import CROSS_SITE
 from ..streams import BUSY, ConnectionStream, streams_of
 from . import models as cm
@@ -70,13 +72,27 @@ async def live_stream(
                 if isinstance(item, str):
                     yield _part(_notice_jpeg(item), {"X-Live-Error": json.dumps(item)})
                 else:
-                    yield _part(item.jpeg, {"X-Live-Stats": json.dumps(item.stats, separators=(",", ":"))})
+                    yield _frame_part(item)
         finally:
             await frames.aclose()  # the viewer leaves the count now, not when collected
 
     return ConnectionStream(parts(), streams.live, send_timeout_s=streams.limits.send_timeout_s,
                             media_type=f"multipart/x-mixed-replace; boundary={BOUNDARY}",
                             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+
+_last_part: tuple[LiveFrame, bytes] | None = None
+
+
+def _frame_part(frame: LiveFrame) -> bytes:
+    """A frame's part, encoded once for all the viewers that get it."""
+    global _last_part
+    last = _last_part
+    if last is not None and last[0] is frame:
+        return last[1]
+    part = _part(frame.jpeg, {"X-Live-Stats": json.dumps(frame.stats, separators=(",", ":"))})
+    _last_part = (frame, part)
+    return part
 
 
 def _live_out(console: ConsoleDep) -> dict:

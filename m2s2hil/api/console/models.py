@@ -100,7 +100,7 @@ class ExposureGain(_In):
 class DarksIn(_In):
     """The (exposure, gain) pairs to take darks at: given, or those a plan uses."""
 
-    exposures: list[ExposureGain] | None = Field(default=None, max_length=32)
+    exposures: list[ExposureGain] | None = Field(default=None, min_length=1, max_length=32)
     plan: Sweep | None = Field(default=None, description="A session plan (as POST /sessions takes).")
     n_frames: Annotated[int, Field(ge=1, le=64)] | None = None
     lens_capped: bool = Field(False, description="The operator confirms the lens cap is on (a real rig).")

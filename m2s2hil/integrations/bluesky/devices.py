@@ -15,7 +15,10 @@ thread so the event loop keeps serving. No device logic is copied here.
 - :class:`M2S2Camera`: a triggerable detector with ``exposure_s`` and ``gain`` signals. Each
   trigger snaps one frame and writes it through the session store with the engine's frame
   stages (:class:`~m2s2hil.engine.frames.FrameStages`: same metadata, cube, preview, truth
-  labels as ``capture``); ``read()`` gives the event id and the scalars, and the raw mosaic as
+  labels as ``capture``), dark-subtracted with the session's master dark for its (exposure,
+  gain) from the engine's :class:`~m2s2hil.engine.darks.SessionDarks` (taken by the plan
+  beforehand, loaded from the store, or captured on demand; retaken when the sensor drifted,
+  as in ``capture``; :mod:`.darks` runs those steps); ``read()`` gives the event id and the scalars, and the raw mosaic as
   an external ``STREAM:`` key whose stream resource names the stored TIFF and its sha256.
 """
 
@@ -36,8 +39,11 @@ from ophyd_async.core import (
     soft_signal_rw,
 )
 
+from m2s2hil.engine.darks import SessionDarks
+from m2s2hil.engine.exposure import CameraControl
 from m2s2hil.engine.frames import CapturedFrame, FrameStages
 from m2s2hil.errors import UsageError
+from m2s2hil.integrations.bluesky.darks import run_step
 from m2s2hil.integrations.documents import FRAME_SCALARS, TIFF, _frame_values, raw_data_key
 from m2s2hil.plan import CaptureEvent
 from m2s2hil.rig.opened import AxisRole, Rig
@@ -105,8 +111,9 @@ class LampPresets(StandardReadable):
 class M2S2Camera(StandardReadable):
     """The camera as a bluesky detector whose frames go into a session (see the module docstring)."""
 
-    def __init__(self, stages: FrameStages, name: str = "camera") -> None:
+    def __init__(self, stages: FrameStages, darks: SessionDarks, name: str = "camera") -> None:
         self._stages = stages
+        self._darks = darks
         self._store: SessionStore = stages.store
         m = stages.rig.config.camera.model
         self._shape = (m.height, m.width)
@@ -127,6 +134,11 @@ class M2S2Camera(StandardReadable):
     @property
     def rig(self) -> Rig:
         return self._stages.rig
+
+    @property
+    def darks(self) -> SessionDarks:
+        """The session's master darks, as the engine keeps them (the plan takes the planned ones)."""
+        return self._darks
 
     def prepare_event(self, event: CaptureEvent) -> None:
         """The sweep event the next trigger captures (its id names the frame in the session)."""
@@ -150,12 +162,16 @@ class M2S2Camera(StandardReadable):
         self._event = None
 
     def _capture(self, ev: CaptureEvent, exposure: float, gain: float) -> Any:
-        st, clock = self._stages, self._stages.rig.clock
-        cam = st.rig.camera
-        cam.configure(exposure_s=exposure, gain=gain)
-        frame = cam.snap()
-        meta = st.meta(ev, frame, exposure, None, clock.monotonic(), clock.wall(), 1)
-        cap = CapturedFrame(frame.data, meta, st.processor(None), st.truth())
+        # the steps of StopAndGoSteps._capture_frame after the move, in its order
+        st, darks, rig = self._stages, self._darks, self._stages.rig
+        dark = run_step(darks.for_setting(exposure, gain), rig)
+        darks.camera.configure(exposure, gain)
+        t_clock, t_wall = rig.clock.monotonic(), rig.clock.wall()
+        frame = darks.camera.snap(exposure)
+        truth = st.truth()
+        dark = run_step(darks.check_temperature(dark, exposure, gain, frame.temperature_c), rig)
+        meta = st.meta(ev, frame, exposure, dark, t_clock, t_wall, 1)
+        cap = CapturedFrame(frame.data, meta, st.processor(dark), truth)
         return st.write(ev, st.process(ev, cap))
 
     async def describe(self) -> dict[str, Any]:
@@ -203,8 +219,11 @@ class RigDevices:
 
 
 def rig_devices(rig: Rig, store: SessionStore, *, save_truth: bool = True) -> RigDevices:
-    """The four devices over one opened rig and one session: one RigOps, one FrameStages,
-    built as the engine builds them (the processing the sweep names, no capture-time QC)."""
+    """The four devices over one opened rig and one session: one RigOps, one FrameStages, one
+    SessionDarks, built as the engine builds them (``make_steps``: the processing the sweep
+    names, the rig's snap timeout; no capture-time QC)."""
     ops = RigOps(rig)
     stages = FrameStages(rig, store, store.sweep, ops, qc=None, save_truth=save_truth, processor_factory=None)
-    return RigDevices(RigAxis(ops, "turntable"), RigAxis(ops, "tilt"), LampPresets(ops), M2S2Camera(stages))
+    darks = SessionDarks(rig, store, store.sweep, ops, CameraControl(rig, rig.config.camera.timeout_s))
+    return RigDevices(RigAxis(ops, "turntable"), RigAxis(ops, "tilt"), LampPresets(ops),
+                      M2S2Camera(stages, darks))
