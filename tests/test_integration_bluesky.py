@@ -39,8 +39,8 @@ def bench(tmp_path):
 
 def _demosaic(store, mosaic: np.ndarray) -> np.ndarray:
     model = store.rig.camera.model
-    demosaicer = get_demosaicer(store.sweep.processing, MosaicLayout.from_pattern(model.layout, model.n_bands),
-                                (model.height, model.width))
+    layout = MosaicLayout.from_pattern(model.layout, model.n_bands)
+    demosaicer = get_demosaicer(store.sweep.processing, layout, (model.height, model.width))
     return np.array(demosaicer.process(mosaic), copy=True)
 
 

@@ -13,10 +13,8 @@ derived from the session id (uuid5), so replaying a session twice gives the same
 :class:`DocumentCatalogue` keeps runs in memory and reads an external array back by following
 stream_datum → stream_resource → file; it validates every document it is given, so it doubles as
 the check on any document source (the bluesky devices of :mod:`m2s2hil.integrations.bluesky`).
-It stands in for a Tiled server, whose install (``tiled[server]``: a web stack, SQL and array
-adapters; 55 packages more than this venv, measured with ``pip install --dry-run``) costs more
-than the one question it would answer here: that the documents hold what a consumer needs to
-find each frame.
+It needs nothing but event-model; a real lab catalogue ingests the same documents in
+:mod:`m2s2hil.integrations.tiled` (bluesky's ``TiledWriter`` into a Tiled server).
 
 Needs the ``documents`` extra (event-model).
 """

@@ -36,7 +36,7 @@ TIFF_SEQUENCE = "multipart/related;type=image/tiff"
 class FileTIFFConsolidator(ConsolidatorBase):
     """One data key's frames, one TIFF file per stream resource, stacked in the order they come."""
 
-    supported_mimetypes = {TIFF}
+    supported_mimetypes: set[str] = {TIFF}  # noqa: RUF012 (bluesky's base declares it so)
     join_method = "stack"
 
     def __init__(self, stream_resource: Any, descriptor: Any) -> None:

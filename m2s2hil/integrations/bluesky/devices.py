@@ -18,8 +18,9 @@ thread so the event loop keeps serving. No device logic is copied here.
   labels as ``capture``), dark-subtracted with the session's master dark for its (exposure,
   gain) from the engine's :class:`~m2s2hil.engine.darks.SessionDarks` (taken by the plan
   beforehand, loaded from the store, or captured on demand; retaken when the sensor drifted,
-  as in ``capture``; :mod:`.darks` runs those steps); ``read()`` gives the event id and the scalars, and the raw mosaic as
-  an external ``STREAM:`` key whose stream resource names the stored TIFF and its sha256.
+  as in ``capture``; :mod:`.darks` runs those steps); ``read()`` gives the event id and the
+  scalars, and the raw mosaic as an external ``STREAM:`` key whose stream resource names the
+  stored TIFF and its sha256.
 """
 
 from __future__ import annotations
