@@ -98,7 +98,7 @@ def streams_of(request: Request) -> Streams:
     streams = getattr(request.app.state, "streams", None)
     if streams is None:  # an application made without create_app's limits
         streams = request.app.state.streams = Streams()
-    return streams  # type: ignore[no-any-return]
+    return streams
 
 
 async def _close(body: Any) -> None:

@@ -67,6 +67,10 @@ def stop_rig(rig: Rig, hw: threading.Lock, job: Job | None, *,
     Returns the read-back and every error met."""
     errors: list[str] = []
     eng = job.engine if job is not None else None
+    if eng is None:
+        # Nothing runs: stop the axes now, not after a request thread's conversation (a live-view
+        # grab) gives ``hw`` back; the drivers serialise their own I/O, as beside an engine.
+        errors += make_safe(rig)
     if eng is not None and not eng.state.terminal:
         request(eng, "abort")
         if not wait_terminal(eng, grace_s):

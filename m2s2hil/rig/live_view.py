@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncGenerator, Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -274,7 +274,7 @@ class LiveStream:
                 self._last_viewer = time.monotonic()
 
     async def aframes(self, *, max_frames: int | None = None,
-                      timeout_s: float = 10.0) -> AsyncIterator[LiveFrame | str]:
+                      timeout_s: float = 10.0) -> AsyncGenerator[LiveFrame | str, None]:
         """:meth:`frames` for a viewer on an event loop: it waits without a thread. The viewer counts
         from its first step until the generator is closed (the daemon closes it when the
         connection goes)."""
