@@ -215,3 +215,17 @@ def test_frames_of_unknown_things(d) -> None:
     assert r.status_code == 404
     assert d.client.get(f"/sessions/{sid}/frames/-1/raw").status_code == 422
     assert d.client.get(f"/sessions/{sid}/frames/{2**40}/raw").status_code == 422
+
+
+def test_sessions_beyond_the_kept_ones_have_their_journals_closed(tmp_path) -> None:
+    # The soak found journals left open past keep_finished (4 descriptors each, until the GC).
+    with daemon(tmp_path / "data", keep_finished=1) as dm:
+        sids = [dm.client.post("/sessions", json=sweep()).json()["session_id"] for _ in range(3)]
+        jobs = [dm.manager._queue.get(sid) for sid in sids]
+        assert all(j is not None for j in jobs)
+        for sid in sids:
+            assert dm.wait_done(sid)["state"] == "completed"
+        assert dm.manager._queue.get(sids[0]) is None and dm.manager._queue.get(sids[-1]) is jobs[-1]
+        assert jobs[0].store.journal._db is None  # dropped: its journal closed
+        assert jobs[-1].store.journal._db is not None  # kept: still open for reads
+        assert dm.client.get(f"/sessions/{sids[0]}").json()["state"] == "completed"  # read from disk

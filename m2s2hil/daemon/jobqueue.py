@@ -134,3 +134,7 @@ class JobQueue:
             gone = self.jobs.get(old)
             if gone is not None and gone.finished.is_set():
                 del self.jobs[old]
+                # Its journal would stay open until the garbage collector found it (the soak
+                # saw 48 open where 32 are kept): reads go to disk from now on.
+                with contextlib.suppress(Exception):
+                    gone.store.close()
