@@ -1,9 +1,10 @@
 """One rig, one running session, a first-in-first-out queue of the others.
 
 :class:`SessionManager` owns the opened :class:`~m2s2hil.rig.opened.Rig` and the data root.
-``submit(sweep)`` checks the plan against the rig, creates the session folder (state
-``queued``) and queues it; a dispatcher thread starts the next session when the rig is
-free, one :class:`~m2s2hil.engine.runner.Engine` at a time, built by
+``submissions.submit(sweep)`` (:class:`~.submission.Submissions`) checks the plan
+against the rig, creates the session folder (state ``queued``) and queues it; a dispatcher
+thread starts the next session when the rig is free, one
+:class:`~m2s2hil.engine.runner.Engine` at a time, built by
 :func:`~m2s2hil.engine.build.build_run` exactly as ``capture`` builds its run (so daemon
 sessions get the same processing and capture-time QC). The queue is visible
 (:meth:`queue`) and cancellable (``control(id, "abort")`` on a queued session).
@@ -29,11 +30,12 @@ for clients through :attr:`SessionManager.reads` (:class:`~.reads.SessionReads`:
 listings, frames, journals).
 
 The manager coordinates; the parts live beside it: the queue entries in :mod:`.jobqueue`,
-plan checks in :mod:`.admission`, status snapshots in :mod:`.status`, listings and frame
+submission, requeueing and control of stored sessions in :mod:`.submission`, plan
+checks in :mod:`.admission`, status snapshots in :mod:`.status`, listings and frame
 files in :mod:`.listing`, the device view in :mod:`.rigstate`, the emergency stop's device
 side and the safety check in :mod:`.estop`, engine requests in :mod:`.engine_requests`, the
 durable hold in :mod:`.hold`, the data-root lock in :mod:`.rootlock`. Locks, always taken in
-this order: ``_submit_lock`` → the hold's file lock → ``_lock`` (= ``_cond``, :attr:`lock`) →
+this order: the submission lock → the hold's file lock → ``_lock`` (= ``_cond``, :attr:`lock`) →
 ``guard.hw``.
 """
 
@@ -47,25 +49,22 @@ from pathlib import Path
 from typing import IO, Any
 
 from m2s2hil.analysis.qc import capture_qc_hook
-from m2s2hil.engine.build import RigChanged, build_run, check_rig_digest
+from m2s2hil.engine.build import build_run
 from m2s2hil.engine.fault_policy import FaultPolicy
 from m2s2hil.engine.options import EngineOptions
 from m2s2hil.engine.state import EngineEvent, RunState, SessionFinished
-from m2s2hil.plan import Sweep
 from m2s2hil.rig.opened import Rig
-from m2s2hil.store.session import SessionStore
 
 from . import listing
-from .admission import check_room, check_sweep
 from .engine_requests import Action, request, wait_safe_boundary
-from .errors import Conflict, HoldNotSaved, QueueFull
+from .errors import Conflict, HoldNotSaved
 from .hold import QueueHold
 from .jobqueue import Job, JobQueue
 from .prometheus import Metrics
 from .reads import SessionReads
 from .rig_guard import RigGuard
 from .rootlock import lock_data_root, unlock_data_root
-from .status import RESUMABLE_BY_HAND, TERMINAL
+from .submission import Submissions
 
 log = logging.getLogger(__name__)
 S = RunState
@@ -100,7 +99,6 @@ class SessionManager:
 
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
-        self._submit_lock = threading.Lock()  # serialises check-then-create of new sessions
         self._queue = JobQueue()  # changed under _lock
         self._current: Job | None = None
         self._hold = QueueHold(self.root, self._cond)  # in memory and on the data root
@@ -115,6 +113,8 @@ class SessionManager:
         self.guard = RigGuard(self, estop_grace_s=estop_grace_s, estop_timeout_s=estop_timeout_s)
         #: Status, listings, frames and journals for the clients.
         self.reads = SessionReads(self)
+        #: New sessions and sessions from disk into the queue, checked first.
+        self.submissions = Submissions(self, self._queue, self._cond, self._hold)
 
         self.metrics.gauge("m2s2hil_queue_depth", "Items waiting: sessions for the rig, frames in the "
                            "running session's processing pipeline.", self._queue_gauges)
@@ -136,7 +136,7 @@ class SessionManager:
         if resume_interrupted:
             for sid in listing.interrupted_sessions(self.root):
                 try:
-                    self._enqueue_existing(sid, reason="daemon start", check_limit=False)
+                    self.submissions.requeue(sid, reason="daemon start", check_limit=False)
                     resumed.append(sid)
                 except Exception as exc:  # one unusable session must not keep the daemon down
                     log.error("cannot resume session %s: %s", sid, exc)
@@ -289,69 +289,6 @@ class SessionManager:
         self._queue.retire(job, self.keep_finished)
         self._cond.notify_all()
 
-    # ================================================================== submission
-    def submit(self, sweep: Sweep) -> Job:
-        """Check the plan against the rig and the disk, create the session and queue it."""
-        cfg = self.rig.config
-        planned, need = check_sweep(sweep, cfg, self.max_plan_frames, root=self.root)
-        with self._submit_lock:
-            self._check_accepting()
-            with self._lock:
-                if self._would_wait() and self._queue.full(self.queue_limit):
-                    raise QueueFull(
-                        f"{len(self._queue)} session(s) already wait for the rig (limit {self.queue_limit}); "
-                        "cancel one (POST /sessions/{id}/abort) or retry when the running one ends"
-                    )
-            check_room(self.root, need)
-            store = SessionStore.create(self.root, sweep, cfg, clock=self.rig.clock)
-            store.set_state("queued")
-            store.record_event("queued", {"via": "api", "planned_events": planned})
-            job = Job(store.session_id, store, resume=False, queued_at=time.time(), planned=planned)
-            with self._cond:
-                self._queue.add(job)
-                self.reads.planned.set(job.session_id, planned)
-                self._cond.notify_all()
-        log.info("session %s queued (%d events)", job.session_id, job.planned)
-        return job
-
-    def _would_wait(self) -> bool:
-        return self._current is not None or bool(self._queue) or self._hold.reason is not None
-
-    def _check_accepting(self) -> None:
-        if self._closing:
-            raise Conflict("the daemon is shutting down; no new sessions are accepted")
-
-    def _enqueue_existing(self, session_id: str, *, reason: str, check_limit: bool = True) -> Job:
-        """Queue a session from disk again (resumption): it will capture what it lacks."""
-        with self._submit_lock:
-            self._check_accepting()
-            with self._lock:
-                live = self._queue.get(session_id)
-                if live is not None and not live.finished.is_set():
-                    raise Conflict(f"session {session_id} is already {live.state} in this daemon")
-                if check_limit and self._would_wait() and self._queue.full(self.queue_limit):
-                    raise QueueFull(f"{len(self._queue)} session(s) already wait for the rig "
-                                    f"(limit {self.queue_limit})")
-            store = self._open(session_id)
-            try:
-                try:
-                    check_rig_digest(store, self.rig.config)
-                except RigChanged as exc:
-                    raise Conflict(str(exc)) from None
-                planned = self.reads.planned.of(store)
-                was = store.state
-                store.record_event("requeued", {"reason": reason, "was": was})
-                store.set_state("queued")
-            except BaseException:
-                store.close()
-                raise
-            job = Job(session_id, store, resume=True, queued_at=time.time(), planned=planned)
-            with self._cond:
-                self._queue.add(job)
-                self._cond.notify_all()
-        log.info("session %s queued for resumption (%s; was %s)", session_id, reason, was)
-        return job
-
     # ================================================================== control
     def control(self, session_id: str, action: Action) -> dict:
         """pause / resume / abort a session; see the module docstring for what conflicts get."""
@@ -372,26 +309,7 @@ class SessionManager:
         if job is not None and not (action == "resume" and job.finished.is_set()):
             state = self.reads.status(session_id)["state"]
             raise Conflict(f"session {session_id} is {state}: there is nothing to {action}")
-        info = self.reads.disk_status(session_id)
-        state = info["state"]
-        if action == "resume" and state == "estopped" and self._hold.reason == "emergency stop":
-            raise Conflict(f"session {session_id} was stopped by the emergency stop, which is not cleared: "
-                           "make the rig safe, clear it with POST /queue/release, then resume")
-        if action == "resume" and state in RESUMABLE_BY_HAND:
-            self._enqueue_existing(session_id, reason="resumed by the operator")
-            return self.reads.status(session_id)
-        if action == "abort" and state in RESUMABLE_BY_HAND:
-            store = self._open(session_id)
-            try:
-                store.record_event("aborted", {"by": "operator", "was": state})
-                store.set_state("aborted")
-            finally:
-                store.close()
-            return self.reads.status(session_id)
-        if state in TERMINAL:
-            raise Conflict(f"session {session_id} is {state}: there is nothing to {action}")
-        raise Conflict(f"session {session_id} is {state} and not running in this daemon: it cannot be "
-                       f"{action}d" + ("; resume queues it again" if state in RESUMABLE_BY_HAND else ""))
+        return self.submissions.control_stored(session_id, action)
 
     def confirm_lens(self, session_id: str, capped: bool) -> dict:
         """The operator's lens cap on (``capped``) or off, for a running session parked for it
@@ -496,6 +414,7 @@ class SessionManager:
         if self._closing:
             raise Conflict("the daemon is shutting down")
 
-    def _open(self, session_id: str) -> SessionStore:
-        """Open for writing (owner lock held): the daemon requeues, aborts and resumes it."""
-        return listing.open_store(self.root, session_id, self.rig.clock, mode="write")
+    @property
+    def closing(self) -> bool:
+        """True once a shutdown began: no new session is accepted or started."""
+        return self._closing

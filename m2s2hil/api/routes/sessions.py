@@ -42,7 +42,7 @@ def create_session(mg: Manager, response: Response, sweep: Annotated[Sweep, Body
     """Queue a session for this sweep; it starts when the rig is free (at once when idle)."""
     # A plain def: FastAPI runs it in its thread pool, so the plan's expansion, the disk check
     # and the session's creation stay off the event loop (/healthz and the SSE streams go on).
-    job = mg.submit(sweep)
+    job = mg.submissions.submit(sweep)
     url = f"/sessions/{job.session_id}"  # relative: never built from the Host header
     response.headers["Location"] = url
     st = mg.reads.status(job.session_id)
