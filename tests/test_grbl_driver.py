@@ -20,7 +20,8 @@ from m2s2hil.drivers.grbl import GrblController
 from m2s2hil.drivers.interfaces import RotaryAxis
 from m2s2hil.protocols.grbl import GrblAlarm, GrblError
 from m2s2hil.simulators import registry
-from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+from m2s2hil.simulators.grbl import GrblSimulator
+from m2s2hil.simulators.grbl_settings import GrblAxisSettings
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice
 from m2s2hil.simulators.world import World

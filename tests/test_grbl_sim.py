@@ -19,7 +19,8 @@ from m2s2hil.protocols.grbl import (
     Setting,
     StatusReport,
 )
-from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+from m2s2hil.simulators.grbl import GrblSimulator
+from m2s2hil.simulators.grbl_settings import GrblAxisSettings
 from m2s2hil.simulators.motion_kit import Trapezoid
 
 
@@ -271,9 +272,9 @@ def test_g10_l20_sets_a_persistent_work_origin(vclock):
     assert host.io(b"$#\n")[0].text == "0.000,0.000,0.000"
     host.io(b"$110=123\n$I=bench\nG10 L2 P1 X4\n")
     host.io(b"$RST=$\n")  # settings only (GRBL upper-cases every line, $I text too)
-    assert sim.settings[110] == 600.0 and sim.coord_data[54][0] == 4.0 and sim.build_text == "BENCH"
+    assert sim.settings[110] == 600.0 and sim.coord_data[54][0] == 4.0 and sim.eeprom.build_text == "BENCH"
     host.io(b"$RST=*\n")  # everything in EEPROM
-    assert sim.coord_data[54][0] == 0.0 and sim.build_text == ""
+    assert sim.coord_data[54][0] == 0.0 and sim.eeprom.build_text == ""
 
 
 def test_g10_waits_for_motion_to_finish(vclock):

@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 from m2s2hil.simulators.frames import SimFrameSource
-from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+from m2s2hil.simulators.grbl import GrblSimulator
+from m2s2hil.simulators.grbl_settings import GrblAxisSettings
 from m2s2hil.simulators.snapshot import superpixel
 from m2s2hil.simulators.world import LampInfo, World
 from m2s2hil.simulators.zaber import ZaberAxisSettings, ZaberSimulator

@@ -10,7 +10,8 @@ from typing import Any
 
 import pytest
 from m2s2hil.drivers.clock import SystemClock
-from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+from m2s2hil.simulators.grbl import GrblSimulator
+from m2s2hil.simulators.grbl_settings import GrblAxisSettings
 from m2s2hil.simulators.pty import PtyServer
 from pygrbl_streamer import GrblStreamer, State
 

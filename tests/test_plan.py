@@ -310,3 +310,14 @@ def test_continuous_speed_blur_and_time():
     fast = estimate_continuous(Sweep(satellite="hubble", build="B1", mode="continuous"), rig, radius_px=500)
     assert set(fast.omega_dps.values()) == {60.0}  # the turntable's limit
     assert fast.within_cable_limit is False  # the run-up past 350 deg would exceed 360 deg
+
+
+@pytest.mark.parametrize("bad", [{"azimuth_start_deg": "0"}, {"reorder": "true"}, {"reorder": 1},
+                                 {"dark": {"frames": "8"}}, {"frames_per_pose": 2.5}, {"gain": "1"},
+                                 {"exposure": {"mode": "auto", "percentile": "99"}}])
+def test_a_sweep_refuses_what_its_schema_refuses(bad) -> None:
+    # schemathesis' coverage phase sent a string for a number and had it accepted (lax coercion)
+    with pytest.raises(PlanError):
+        parse_sweep({"satellite": "hubble", "build": "B2", **bad})
+    ok = parse_sweep({"satellite": "hubble", "build": "B2", "azimuth_step_deg": 30})
+    assert ok.azimuth_step_deg == 30.0  # an int is still a number

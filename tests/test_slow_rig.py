@@ -17,7 +17,8 @@ from m2s2hil.drivers.grbl import GrblController
 from m2s2hil.drivers.motion_watch import PLAN_MARGIN, trapezoid_s
 from m2s2hil.drivers.zaber import ZaberDevice
 from m2s2hil.simulators import registry
-from m2s2hil.simulators.grbl import GrblAxisSettings, GrblSimulator
+from m2s2hil.simulators.grbl import GrblSimulator
+from m2s2hil.simulators.grbl_settings import GrblAxisSettings
 from m2s2hil.simulators.zaber import ZaberSimulator
 
 from m2s2hil.engine.state import RunState

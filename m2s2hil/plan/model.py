@@ -33,7 +33,7 @@ class PlanModel(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-Seconds = Annotated[float, Field(ge=MIN_EXPOSURE_S, le=MAX_EXPOSURE_S)]
+Seconds = Annotated[float, Field(ge=MIN_EXPOSURE_S, le=MAX_EXPOSURE_S, strict=True)]
 
 
 def condition_key(name: str) -> str:
@@ -69,12 +69,12 @@ class AutoExposureSettings(PlanModel):
     of full scale. ``start_s`` are the first guesses (also used to plan the darks)."""
 
     mode: Literal["auto"] = "auto"
-    target_fraction: Annotated[float, Field(gt=0, le=1)] = 0.9
-    percentile: Annotated[float, Field(gt=0, le=100)] = 99.9
+    target_fraction: Annotated[float, Field(gt=0, le=1, strict=True)] = 0.9
+    percentile: Annotated[float, Field(gt=0, le=100, strict=True)] = 99.9
     start_s: dict[str, Seconds] = Field(default_factory=lambda: dict(DEFAULT_EXPOSURE_S))
     min_s: Seconds = MIN_EXPOSURE_S
     max_s: Seconds = 1.0
-    max_iterations: Annotated[int, Field(ge=1, le=20)] = 4
+    max_iterations: Annotated[int, Field(ge=1, le=20, strict=True)] = 4
 
     @field_validator("start_s")
     @classmethod
@@ -96,7 +96,7 @@ class DarkPolicy(PlanModel):
     distinct (exposure, gain), reused by every frame with that setting. ``frames = 0``
     turns dark subtraction off."""
 
-    frames: Annotated[int, Field(ge=0, le=256)] = 8
+    frames: Annotated[int, Field(ge=0, le=256, strict=True)] = 8
     reduce: Literal["mean", "median"] = "mean"
 
 

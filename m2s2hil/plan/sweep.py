@@ -36,23 +36,26 @@ from m2s2hil.plan.order import best_plan
 class Sweep(PlanModel):
     """A capture plan for one satellite build (see module docstring)."""
 
+    # Numbers and switches are strict: "10" or 1 where the schema says a number or a boolean
+    # is refused, as the API's schema promises (an int is still a valid float).
+
     satellite: str
     build: str
     lighting: list[str] = Field(default_factory=lambda: ["weak", "strong", "directional"], min_length=1)
     tilts: list[str] = Field(default_factory=lambda: ["E0", "E1", "E2"], min_length=1)
     # 0.01 deg (36,000 poses) bounds the grid in the schema too; the frame limit is checked apart.
-    azimuth_step_deg: Annotated[float, Field(ge=0.01, le=360)] = 10.0
-    azimuth_start_deg: Annotated[float, Field(ge=0, lt=360)] = 0.0
-    frames_per_pose: Annotated[int, Field(ge=1, le=100)] = 1
+    azimuth_step_deg: Annotated[float, Field(ge=0.01, le=360, strict=True)] = 10.0
+    azimuth_start_deg: Annotated[float, Field(ge=0, lt=360, strict=True)] = 0.0
+    frames_per_pose: Annotated[int, Field(ge=1, le=100, strict=True)] = 1
     exposure: FixedExposure | AutoExposureSettings = Field(
         default_factory=FixedExposure, discriminator="mode"
     )
-    gain: Annotated[float, Field(ge=0, le=48)] = 1.0
-    settle_s: Annotated[float, Field(ge=0, le=60)] | None = None
+    gain: Annotated[float, Field(ge=0, le=48, strict=True)] = 1.0
+    settle_s: Annotated[float, Field(ge=0, le=60, strict=True)] | None = None
     dark: DarkPolicy = DarkPolicy()
     processing: str = Field(default="superpixel", pattern=r"^[a-z][a-z0-9_-]*$")
     axis_order: str = "auto"
-    reorder: bool = True  # choose the order of conditions and tilts by cost
+    reorder: Annotated[bool, Field(strict=True)] = True  # choose the order of conditions and tilts by cost
     mode: Literal["stop-and-go", "continuous"] = "stop-and-go"
 
     @field_validator("satellite")
