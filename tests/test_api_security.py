@@ -35,6 +35,7 @@ def test_off_loopback_needs_a_long_enough_token() -> None:
         check_listen("127.0.0.1", "short")  # a configured token must be a real one anywhere
 
 
+@pytest.mark.slow  # a real `m2s2hil serve` process
 def test_serve_refuses_to_start_off_loopback_without_token(tmp_path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "M2S2HIL_TOKEN"}
     p = subprocess.run(

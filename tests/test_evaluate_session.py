@@ -55,6 +55,7 @@ def majority_by_loops(lab: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+@pytest.mark.slow  # shares a module fixture that evaluates a captured session (about 9 s)
 def test_jobs_come_with_truth_labels_stored_by_the_engine(evaluated):
     jobs, res, _, _ = evaluated
     # cubes are computed from raw + dark when read (issue 14), not stored
@@ -67,6 +68,7 @@ def test_jobs_come_with_truth_labels_stored_by_the_engine(evaluated):
         assert 0.0 < r["results"]["spectral"]["mtc"] <= 1.0 and "mtc" not in r["results"]["rgb"]
 
 
+@pytest.mark.slow  # shares a module fixture that evaluates a captured session (about 9 s)
 def test_scores_match_an_independent_recomputation(evaluated, session):
     """Read the stored files ourselves, reduce the labels with plain loops, segment and score."""
     jobs, res, _, _ = evaluated
@@ -83,6 +85,7 @@ def test_scores_match_an_independent_recomputation(evaluated, session):
     assert got["recall"] == pytest.approx(s.macro_recall)
 
 
+@pytest.mark.slow  # shares a module fixture that evaluates a captured session (about 9 s)
 def test_report_files(evaluated):
     _, res, written, out = evaluated
     assert {

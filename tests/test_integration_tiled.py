@@ -15,6 +15,9 @@ from tiled.server import SimpleTiledServer
 
 from m2s2hil.integrations.tiled import ingest_session
 
+# Each test starts a local Tiled server and captures a session: seconds each.
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture
 def captured(tmp_path):
