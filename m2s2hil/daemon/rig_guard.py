@@ -42,6 +42,9 @@ class RigGuard:
         self.estop_grace_s = estop_grace_s
         self.estop_timeout_s = estop_timeout_s
         self.hw = threading.Lock()  # request threads' own device conversations
+        # The camera alone (the live view's grabs): taken after ``hw`` by those that hold both,
+        # so the emergency stop, which needs only ``hw``, never waits for a frame to arrive.
+        self.cam = threading.Lock()
         #: Called with the rig, holding the device lock, just before a session's engine starts.
         self.before_session: list[Callable[[Rig], None]] = []
 
@@ -49,7 +52,7 @@ class RigGuard:
     def start_engine(self, engine: Engine) -> None:
         """Hand the rig to a session: the before-session hooks (e.g. the console's live view
         stops streaming), then the engine, holding the device lock."""
-        with self.hw:
+        with self.hw, self.cam:
             for hook in self.before_session:
                 try:
                     hook(self.rig)
@@ -93,9 +96,24 @@ class RigGuard:
             self._sessions.check_rig_free(what)
             self.hw.acquire()
         try:
-            yield self.rig
+            with self.cam:
+                yield self.rig
         finally:
             self.hw.release()
+
+    @contextlib.contextmanager
+    def camera_access(self, what: str = "live view") -> Iterator[Rig]:
+        """The rig for a conversation with the camera only (a live-view grab): like
+        :meth:`manual_access`, but it leaves ``hw`` free, so lamps and axes (the emergency stop
+        first) are not held up while a frame is exposed, read out and rendered. The caller
+        touches nothing but ``rig.camera``."""
+        with self._sessions.lock:
+            self._sessions.check_rig_free(what)
+            self.cam.acquire()
+        try:
+            yield self.rig
+        finally:
+            self.cam.release()
 
     def rig_state(self) -> dict:
         """Each device's state and health (see :mod:`.rigstate`): the engine's read-back while

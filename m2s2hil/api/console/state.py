@@ -43,7 +43,7 @@ class LiveCamera:
 
     def grab(self, settings: LiveSettings) -> Frame:
         try:
-            with self.mg.guard.manual_access("live view") as rig:
+            with self.mg.guard.camera_access("live view") as rig:
                 wanted = (settings.exposure_s, settings.gain)
                 if self.applied != wanted:
                     self.release(rig)
@@ -68,7 +68,7 @@ class LiveCamera:
         """The last viewer left: stop the stream."""
         if self.streaming:
             try:
-                with self.mg.guard.manual_access("live view") as rig:
+                with self.mg.guard.camera_access("live view") as rig:
                     self.release(rig)
             except Conflict:
                 self.streaming = False  # a session took the rig (and stopped the stream first)
