@@ -145,7 +145,7 @@ def bench_stream(size: int, tmp: Path, seconds: float = 60.0) -> dict:
     assert isinstance(cam_sim, ToucanCamera)
     cam_sim.frame_source = GradientSource(size, size, cfg.camera.model.bit_depth)
     try:
-        engine = build_run(rig, tmp / "stream", sweep=sweep, qc=capture_qc_hook(),
+        engine = build_run(rig, tmp / "stream", sweep=sweep, qc=None,
                            options=EngineOptions.of(speed_dps=speed, save_truth=False))
         store = engine.store
         with RssSampler() as rss:
