@@ -27,18 +27,11 @@ import numpy as np
 
 
 def timed(fn, frames: int, rounds: int) -> tuple[float, float]:
-    """(median over every frame, best round median), ms."""
-    fn()
-    every, medians = [], []
-    for _ in range(rounds):
-        ts = []
-        for _ in range(frames):
-            t0 = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t0)
-        medians.append(float(np.median(ts)) * 1e3)
-        every.extend(ts)
-    return float(np.median(every)) * 1e3, min(medians)
+    """(median over every frame, best round median), ms: the processing benchmark's own timer."""
+    from m2s2hil.processing.bench import time_call
+
+    t = time_call(fn, frames=frames, rounds=rounds)
+    return t.ms_median, t.ms_best
 
 
 def fill_bandwidth(frames: int, rounds: int) -> float:
