@@ -39,7 +39,7 @@ _SERIAL: dict[str, tuple[str, ...]] = {
     "vanish": ("duration_s",),  # default 1 s
 }
 
-#: A slow or stuck rig (simulators.grbl / simulators.zaber): ``slow_motion`` runs moves
+#: A slow or stuck rig (simulators.grbl_motion / simulators.zaber): ``slow_motion`` runs moves
 #: ``factor`` times slower than the controller's settings say (default 5); ``hang`` freezes
 #: one part-way while the controller still reports it moving (default fraction 0.5).
 _SLOW_RIG: dict[str, tuple[str, ...]] = {"slow_motion": ("factor",), "hang": ("fraction",)}
