@@ -49,6 +49,14 @@ def _round_exposure(s: float) -> float:
     return round(float(s), 6)
 
 
+def _with_defaults(v: dict[str, float]) -> dict[str, float]:
+    """Exposures per lighting condition, keys normalised, rounded, the missing ones defaulted."""
+    out = dict(DEFAULT_EXPOSURE_S)
+    for k, s in v.items():
+        out[condition_key(k)] = _round_exposure(s)
+    return out
+
+
 class FixedExposure(PlanModel):
     """One exposure per lighting condition; conditions left out get the default."""
 
@@ -58,10 +66,7 @@ class FixedExposure(PlanModel):
     @field_validator("seconds")
     @classmethod
     def _fill(cls, v: dict[str, float]) -> dict[str, float]:
-        out = dict(DEFAULT_EXPOSURE_S)
-        for k, s in v.items():
-            out[condition_key(k)] = _round_exposure(s)
-        return out
+        return _with_defaults(v)
 
 
 class AutoExposureSettings(PlanModel):
@@ -79,10 +84,7 @@ class AutoExposureSettings(PlanModel):
     @field_validator("start_s")
     @classmethod
     def _fill(cls, v: dict[str, float]) -> dict[str, float]:
-        out = dict(DEFAULT_EXPOSURE_S)
-        for k, s in v.items():
-            out[condition_key(k)] = _round_exposure(s)
-        return out
+        return _with_defaults(v)
 
     @model_validator(mode="after")
     def _range(self) -> AutoExposureSettings:
