@@ -8,6 +8,11 @@ ever, and any byte cancels the keep-alive timer. :class:`HeaderDeadlineProtocol`
 protocol with one timer more) gives every request a deadline for its complete headers,
 counted from when the connection opens or the previous response ended; bytes that trickle in
 do not extend it. A client past it gets ``408 Request Timeout`` and the connection closes.
+
+The close is staged (RFC 9112 section 9.6): the server shuts its sending side, then reads and
+drops whatever the client still sends for a short linger before closing. Closing at once while
+the client is still sending makes the kernel answer with a reset, and a reset can discard the
+408 before the client has read it.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from typing import Any
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 _TIMEOUT_408 = b"HTTP/1.1 408 Request Timeout\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
+_LINGER_S = 2.0  # how long a timed-out client's late bytes are read and dropped before the close
 
 
 class HeaderDeadlineProtocol(H11Protocol):
@@ -26,6 +32,7 @@ class HeaderDeadlineProtocol(H11Protocol):
     header_timeout_s: float = 10.0
     _deadline: asyncio.TimerHandle | None = None
     _cycle_seen: object = None
+    _lingering: bool = False
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -34,6 +41,11 @@ class HeaderDeadlineProtocol(H11Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         super().connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        if self._lingering:
+            return  # after the 408: read so the kernel sends no reset, and drop
+        super().data_received(data)
 
     def handle_events(self) -> None:
         super().handle_events()
@@ -56,9 +68,15 @@ class HeaderDeadlineProtocol(H11Protocol):
 
     def _headers_late(self) -> None:
         self._deadline = None
-        if not self.transport.is_closing():
-            self.transport.write(_TIMEOUT_408)
+        if self.transport.is_closing():
+            return
+        self.transport.write(_TIMEOUT_408)
+        if not self.transport.can_write_eof():
             self.transport.close()
+            return
+        self._lingering = True
+        self.transport.write_eof()
+        self._deadline = self.loop.call_later(_LINGER_S, self.transport.close)
 
 
 def protocol_with_header_timeout(seconds: float) -> type[HeaderDeadlineProtocol]:

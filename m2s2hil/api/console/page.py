@@ -12,9 +12,9 @@ emergency stop or jog buttons.
 from __future__ import annotations
 
 from importlib import resources
-from typing import Any, Literal
+from typing import Any
 
-from fastapi import APIRouter, Body
+from fastapi import APIRouter, Body, HTTPException
 from fastapi.responses import Response
 
 from m2s2hil.catalog import load_catalog
@@ -27,8 +27,12 @@ from . import models as cm
 open_router = APIRouter(tags=["console"])
 router = APIRouter(tags=["console"])
 
-ASSETS: dict[str, str] = {"console.js": "text/javascript; charset=utf-8",
-                          "console.css": "text/css; charset=utf-8"}
+_TYPES = {".js": "text/javascript; charset=utf-8", ".css": "text/css; charset=utf-8"}
+# Every script and style sheet in the console folder, read once: a name not in it is a 404, so
+# no request can reach another file.
+ASSETS: dict[str, str] = {f.name: _TYPES[f.name[f.name.rfind("."):]]
+                          for f in resources.files("m2s2hil").joinpath("console").iterdir()
+                          if f.name.endswith(tuple(_TYPES))}
 SECURITY_HEADERS = {
     "Content-Security-Policy": ("default-src 'none'; script-src 'self'; style-src 'self'; "
                                 "img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'; "
@@ -52,8 +56,10 @@ def console_page() -> Response:
 
 @open_router.get("/console/{name}", response_class=Response,
                  responses={200: {"content": {t.split(";")[0]: {} for t in ASSETS.values()}}})
-def console_asset(name: Literal["console.js", "console.css"]) -> Response:
-    """The console's script and style sheet."""
+def console_asset(name: str) -> Response:
+    """The console's scripts and style sheet."""
+    if name not in ASSETS:
+        raise HTTPException(404, f"no console asset named {name!r}")
     return Response(_asset(name), media_type=ASSETS[name], headers=SECURITY_HEADERS)
 
 
