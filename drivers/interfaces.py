@@ -99,6 +99,16 @@ class Camera(Protocol):
 
 
 @runtime_checkable
+class SplitSnap(Protocol):
+    """A snap in two halves (U3V): ``trigger()`` starts the exposure, ``read_triggered()``
+    returns the frame after its readout, so the stage can move during the readout."""
+
+    def trigger(self) -> None: ...
+
+    def read_triggered(self, timeout: float | None = None) -> Frame: ...
+
+
+@runtime_checkable
 class Homing(Protocol):
     """Finds its reference position (a motion controller, or an axis homed on its own)."""
 

@@ -199,6 +199,16 @@ class U3VCamera:
         with self._lock:
             return self._guard(self._acq.snap, timeout, in_read=True)
 
+    def trigger(self) -> None:
+        """Start one triggered exposure; :meth:`read_triggered` returns its frame
+        (:class:`~m2s2hil.drivers.interfaces.SplitSnap`: the stage may move during readout)."""
+        with self._lock:
+            self._guard(self._acq.trigger, in_read=True)
+
+    def read_triggered(self, timeout: float | None = None) -> Frame:
+        with self._lock:
+            return self._guard(self._acq.read_triggered, timeout, in_read=True)
+
     def start_stream(self, fps: float | None = None) -> None:
         with self._lock:
             self._guard(self._acq.start_stream, fps)

@@ -118,12 +118,21 @@ class Acquisition:
         self.settings.mode = "triggered"
 
     def snap(self, timeout: float | None) -> Frame:
+        self.trigger()
+        return self.read_triggered(timeout)
+
+    def trigger(self) -> None:
+        """The first half of :meth:`snap`: the exposure starts (its frame is read with
+        :meth:`read_triggered`; the stage may move once the exposure has ended)."""
         if self.settings.mode != "triggered" or self.rearm:
             # After a failed snap a late frame may still be on its way: stopping and
             # starting acquisition discards it, so no snap returns an older trigger's frame.
             self.arm_trigger()
             self.rearm = False
         self._session().features.execute("TriggerSoftware")
+
+    def read_triggered(self, timeout: float | None) -> Frame:
+        """The second half of :meth:`snap`: the triggered frame after its readout."""
         try:
             return self.read(timeout)
         except (DeviceTimeout, FrameIncomplete, FrameCorrupt):

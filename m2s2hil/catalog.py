@@ -50,8 +50,9 @@ class Lighting(_Frozen):
 
 
 class Elevation(_Frozen):
-    key: str  # E0 | E1 | E2
+    key: str  # E0 | E1 | E2 (E3: synthetic only)
     description: str
+    tilt_deg: float | None = None  # a synthetic-only elevation's tilt (HIL tilts are the rig file's)
 
     @property
     def number(self) -> int:
@@ -63,6 +64,7 @@ class Catalog(_Frozen):
     satellites: dict[str, Satellite]
     lighting: dict[str, Lighting]
     elevations: dict[str, Elevation]
+    synthetic_elevations: dict[str, Elevation] = {}  # rendered only (m2s2hil synth), never captured
 
     def satellite(self, name: str) -> Satellite:
         return self.satellites[_match("satellite", name, self.satellites, _alias_sat(self))]
@@ -124,4 +126,6 @@ def load_catalog() -> Catalog:
         sats[k] = Satellite(key=k, name=v["name"], builds=builds)
     lighting = {k: Lighting(key=k, **v) for k, v in raw["lighting"].items()}
     elevations = {k: Elevation(key=k, **v) for k, v in raw["elevations"].items()}
-    return Catalog(materials=materials, satellites=sats, lighting=lighting, elevations=elevations)
+    synthetic = {k: Elevation(key=k, **v) for k, v in raw.get("synthetic_elevations", {}).items()}
+    return Catalog(materials=materials, satellites=sats, lighting=lighting, elevations=elevations,
+                   synthetic_elevations=synthetic)

@@ -34,6 +34,9 @@ def _register() -> None:
     app.command("evaluate")(evaluate.evaluate_cmd)
     app.command("report")(evaluate.report_cmd)
     app.command("serve")(serve.serve)
+    from m2s2hil.commands import synth  # the synthetic domain (m2s2hil.twin.synth)
+
+    app.command("synth")(synth.synth_cmd)
 
 
 _register()

@@ -389,6 +389,8 @@ def load_rig(path: str | Path | None = None) -> RigConfig:
         # A calibration file named in a rig file is found next to that file.
         camera = rig.camera.model_copy(update={"calibration_file": Path(path).parent / cal})
         rig = rig.model_copy(update={"camera": camera})
+    if path is not None and rig.simulation.mockups:  # so are the lab's mockup meshes
+        rig = rig.model_copy(update={"simulation": rig.simulation.resolved(Path(path).parent)})
     if path is not None:
         _SOURCES[id(rig)] = Path(path)
         weakref.finalize(rig, _SOURCES.pop, id(rig), None)

@@ -21,6 +21,12 @@ parameters that kind takes (``simulators.fault_injection.FAULT_KINDS_BY_DEVICE``
     kind = "frame_timeout"
     rate = 0.01        # one frame in a hundred, seeded
 
+    [simulation.mount]   # the mockup as it really sits (MountSettings): off the axis, turned, ...
+    offset_mm = [2.0, 0.0]
+
+    [simulation.lamps]   # lamp name -> output factor: a dead (0) or dim lamp
+    bar1 = 0.0
+
 :func:`build_world` and :func:`build_frame_source` turn a configuration into the simulated
 world and the camera's frame source; the rig factory, ``m2s2hil sim snapshot`` and the
 ground-truth scenes all use them. Simulator modules are imported only when something is
@@ -31,6 +37,7 @@ from __future__ import annotations
 
 import urllib.parse
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import (
@@ -171,6 +178,74 @@ class GrblSimOptions(_Model):
         return self.model_dump(exclude_none=True)
 
 
+class MountSettings(_Model):
+    """``[simulation.mount]``: the mockup as it really sits on the simulated rig, where a
+    bench set up wrong differs from the nominal mount (``simulators.world.Placement``)::
+
+        [simulation.mount]
+        offset_mm = [2.0, 0.0]   # centre off the turntable axis: x right, y away from the camera
+        yaw_deg = 2.0            # turned about its own axis at azimuth 0
+        tilt_bias_deg = 0.5      # the tilt stage's true angle minus its read-back
+        build = "B1"             # the build really on the turntable, whatever the session says
+    """
+
+    offset_mm: tuple[Annotated[float, Field(ge=-50, le=50)], Annotated[float, Field(ge=-50, le=50)]] = (
+        0.0, 0.0)
+    yaw_deg: Annotated[float, Field(ge=-180, le=180)] = 0.0
+    tilt_bias_deg: Annotated[float, Field(ge=-30, le=30)] = 0.0
+    satellite: str | None = Field(None, min_length=1)
+    build: Annotated[str, Field(pattern=r"^[Bb][0-9]+$")] | None = None
+    diameter_mm: Annotated[float, Field(gt=10, le=2000)] = Field(
+        160.0, description="the mockup's bounding-sphere diameter (turns mm into the scene's units)"
+    )
+
+    @field_validator("satellite")
+    @classmethod
+    def _known_satellite(cls, v: str | None) -> str | None:
+        if v is None:
+            return v
+        from m2s2hil.catalog import load_catalog
+        from m2s2hil.errors import CatalogError
+
+        try:
+            return load_catalog().satellite(v).key
+        except CatalogError as exc:
+            raise ValueError(str(exc)) from None
+
+    @field_validator("build")
+    @classmethod
+    def _known_build(cls, v: str | None) -> str | None:
+        if v is None:
+            return v
+        from m2s2hil.catalog import load_catalog
+
+        v = v.upper()
+        known = sorted({b for sat in load_catalog().satellites.values() for b in sat.builds})
+        if v not in known:
+            raise ValueError(f"no satellite has a build {v!r}; known: {', '.join(known)}")
+        return v
+
+    def placement(self) -> Any:
+        from m2s2hil.simulators.world import Placement
+
+        return Placement(
+            offset_x_mm=float(self.offset_mm[0]), offset_y_mm=float(self.offset_mm[1]),
+            yaw_deg=float(self.yaw_deg), tilt_bias_deg=float(self.tilt_bias_deg),
+            satellite=self.satellite, build=self.build, diameter_mm=float(self.diameter_mm),
+        )
+
+
+class MockupFile(_Model):
+    """``[simulation.mockups.SATELLITE.BUILD]``: the build's geometry from the lab's own files
+    instead of the built-in mockup (``simulators.meshes``): ``mesh`` is a slicer's 3MF or a
+    folder of STL files, one per material; a relative path is found next to the rig file."""
+
+    mesh: Path
+    rotate_deg: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="turn the model about x, then y, then z (printed lying down)"
+    )
+
+
 class SimulationConfig(_Model):
     """What the simulators need beyond the devices: the scene, the sensor and injected faults."""
 
@@ -186,11 +261,45 @@ class SimulationConfig(_Model):
     faults: dict[str, list[FaultSpec]] = Field(
         default_factory=dict, description="device name -> faults injected into its simulator"
     )
+    mount: MountSettings = MountSettings()
+    lamps: dict[str, Annotated[float, Field(ge=0, le=1)]] = Field(
+        default_factory=dict, description="lamp name -> output factor (0: dead, 0.5: dim to half)"
+    )
+
+    mockups: dict[str, dict[str, MockupFile]] = Field(
+        default_factory=dict, description="satellite -> build -> the lab's mesh of it (3MF or STL folder)"
+    )
 
     def device_options(self, name: str) -> dict[str, Any]:
         """The options of device ``name``'s simulator (empty: its defaults)."""
         opts = self.devices.get(name)
         return opts.options() if opts is not None else {}
+
+    @field_validator("mockups")
+    @classmethod
+    def _catalog_builds(cls, v: dict[str, dict[str, MockupFile]]) -> dict[str, dict[str, MockupFile]]:
+        from m2s2hil.catalog import load_catalog
+        from m2s2hil.errors import CatalogError
+
+        cat = load_catalog()
+        out: dict[str, dict[str, MockupFile]] = {}
+        for sat, builds in v.items():
+            for build, spec in builds.items():
+                try:
+                    b = cat.build(sat, build)
+                except CatalogError as exc:
+                    raise ValueError(f"{sat}.{build}: {exc}") from None
+                out.setdefault(b.satellite, {})[b.key] = spec
+        return out
+
+    def resolved(self, folder: Path) -> SimulationConfig:
+        """This section with every relative mesh path taken from ``folder`` (the rig file's)."""
+        def where(spec: MockupFile) -> MockupFile:
+            return spec if spec.mesh.is_absolute() else spec.model_copy(update={"mesh": folder / spec.mesh})
+
+        mockups = {sat: {b: where(spec) for b, spec in builds.items()}
+                   for sat, builds in self.mockups.items()}
+        return self.model_copy(update={"mockups": mockups})
 
 
 _FAULTS = TypeAdapter(dict[str, list[FaultSpec]])
@@ -213,6 +322,18 @@ def check_devices(rig: RigConfig) -> None:
                 "", f"simulation.devices.{name}",
                 f"{name!r} speaks {dev.protocol}: only GRBL simulators take options",
             )
+    for name in rig.simulation.lamps:
+        if name not in rig.lamps:
+            known = ", ".join(rig.lamps)
+            raise ConfigError("", f"simulation.lamps.{name}", f"no lamp named {name!r}; known: {known}")
+    mount = rig.simulation.mount
+    if mount.satellite is not None and mount.build is not None:
+        from m2s2hil.catalog import load_catalog
+
+        builds = load_catalog().satellite(mount.satellite).builds
+        if mount.build not in builds:
+            raise ConfigError("", "simulation.mount.build",
+                              f"{mount.satellite} has no build {mount.build!r}; it has: {', '.join(builds)}")
     check_faults(rig, rig.simulation.faults)
 
 
@@ -283,6 +404,8 @@ def build_world(
     return World(
         clock,
         lamp_info={lc.channel: LampInfo(name, lc.kind, lc.warmup_s) for name, lc in rig.lamps.items()},
+        placement=sim.mount.placement(),
+        lamp_factor={rig.lamps[name].channel: float(f) for name, f in sim.lamps.items()},
         spot_angle_deg=sim.spot_angle_deg if spot_angle_deg is None else float(spot_angle_deg),
         sensor_temperature_c=(
             sim.sensor_temperature_c if sensor_temperature_c is None else float(sensor_temperature_c)
@@ -299,7 +422,27 @@ def build_frame_source(
     from m2s2hil.simulators.frames import SimFrameSource
 
     cat = load_catalog()
-    return SimFrameSource(
+    source = SimFrameSource(
         world, model or rig.camera.model, lambda sat, build: list(cat.build(sat, build).materials),
         sensor_params=rig.simulation.sensor.params(), seed=seed,
     )
+    source.scene.meshes.update(mesh_mockups(rig))
+    return source
+
+
+def mesh_mockups(rig: RigConfig) -> dict[tuple[str, str], Any]:
+    """The lab's meshes the rig file names, loaded and checked against their builds
+    (``simulators.meshes.MeshFileError``, one line naming the file, when one cannot be used)."""
+    if not rig.simulation.mockups:
+        return {}
+    from m2s2hil.catalog import load_catalog
+    from m2s2hil.simulators.meshes import load_mesh_mockup
+
+    cat = load_catalog()
+    out: dict[tuple[str, str], Any] = {}
+    for sat, builds in rig.simulation.mockups.items():
+        for build, spec in builds.items():
+            mats = cat.build(sat, build).materials
+            out[(sat, build)], _ = load_mesh_mockup(spec.mesh, f"{sat} {build}", mats,
+                                                    rotate_deg=spec.rotate_deg)
+    return out

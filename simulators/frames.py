@@ -210,10 +210,18 @@ class SimFrameSource:
                 panel = white_panel_rate(self._panel, lamps, w.lamp_info, spot, self.scene.params.lighting)
                 frame = self.sensor.expose(panel, exposure_s, gain, temp)
             else:
+                # The mockup as it really sits (world.Placement): yaw adds to the turntable's
+                # angle, the tilt bias to the stage's, the offset moves it off the axis.
+                place = getattr(w, "placement", None)
+                yaw = place.yaw_deg if place else 0.0
+                bias = place.tilt_bias_deg if place else 0.0
+                offset = None
+                if place is not None and (place.offset_x_mm or place.offset_y_mm):
+                    offset = place.offset_units(self.scene.mount(sat, mats).radius)
                 for i, p in enumerate(poses):
                     sub = self.scene.render(
-                        sat, mats, p.azimuth_deg, p.tilt_deg, lamps, w.lamp_info, spot,
-                        band_gain=self.sensor.band_gain,
+                        sat, mats, p.azimuth_deg + yaw, p.tilt_deg + bias, lamps, w.lamp_info, spot,
+                        band_gain=self.sensor.band_gain, offset=offset, build=build,
                     )
                     if i == len(poses) // 2:
                         shaded = sub

@@ -7,13 +7,18 @@ each mockup to the frame.
 Each part names the materials it prefers, best first; :func:`assign_materials` gives
 every part the first preferred material the mounted build has, then makes sure every
 material of the build appears on some part (B1 = all Pro Silver).
+
+A mockup may also carry an explicit part map per build (``Mockup.builds``), used when the
+mounted materials are exactly that map's (:func:`part_materials`). Hubble needs one: Table 1
+of the paper gives its B2 and B3 the same four filaments, so preferences alone would print
+B3 as a copy of B2 (issue 23). Hubble's maps and what in them is a guess: ``HUBBLE_BUILDS``.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
@@ -48,6 +53,7 @@ class Mockup:
     name: str
     parts: tuple[Part, ...]
     stand_top: tuple[float, float, float]  # where the stand's clamp holds the mockup
+    builds: Mapping[str, Mapping[str, str]] = field(default_factory=dict)  # build → part → material
 
 
 Y_TO_CAMERA = rot_x(90.0)  # maps a primitive's +z axis onto −y (towards the camera at azimuth 0)
@@ -165,6 +171,40 @@ def _iss() -> Mockup:
     return Mockup("iss", tuple(parts), (0.0, 0.0, -0.255))
 
 
+# Hubble's part maps. Evidence (m2s2-paper.txt): Table 1 gives B2 and B3 the same four
+# filaments (Pro Silver, Dark Grey, Pro Metallic Blue, Pro Metallic Magenta); section 2.2 calls
+# B3 "the most complex case"; Table 2's Hubble rows differ between B2 and B3, so the prints
+# place the filaments differently. Nothing in the text says where: Fig. 3 (Hubble B2, E2) is
+# described, not reproduced. So B1 is fact (all Pro Silver) and B2 follows the part
+# preferences (the real telescope's look: silver tube and shroud, dark bands and equipment bay,
+# blue arrays, magenta door and antennas). **B3 is a guess** built on one rule: the same four
+# filaments interleaved at a finer scale, every filament on at least three parts (the stand
+# adds one for Pro Silver), so a view holds more separate material regions than B2's and no
+# filament covers most of the object (in B2 Pro Silver covers half; `tests/test_catalog.py`
+# checks both). Every part is one of the geometry's pieces, so B2 and B3 share their
+# silhouettes to the pixel and differ only in labels.
+HUBBLE_PARTS_B2 = {
+    "aft_shroud": "pro_silver", "equipment_section": "dark_grey", "light_shield": "pro_silver",
+    "light_shield_flare": "pro_silver", "shield_band_lower": "dark_grey", "shield_band_upper": "dark_grey",
+    "aperture": "dark_grey", "aperture_door": "pro_metallic_magenta",
+    "solar_wing_left": "pro_metallic_blue", "solar_mast_left": "pro_metallic_blue",
+    "solar_wing_right": "pro_metallic_blue", "solar_mast_right": "pro_metallic_blue",
+    "antenna_front": "pro_metallic_magenta", "antenna_back": "pro_metallic_magenta",
+}
+HUBBLE_BUILDS: dict[str, dict[str, str]] = {
+    "B1": dict.fromkeys(HUBBLE_PARTS_B2, "pro_silver"),
+    "B2": HUBBLE_PARTS_B2,
+    "B3": {  # guess (see above)
+        "aft_shroud": "dark_grey", "equipment_section": "pro_metallic_blue", "light_shield": "pro_silver",
+        "light_shield_flare": "pro_metallic_magenta", "shield_band_lower": "pro_metallic_magenta",
+        "shield_band_upper": "pro_metallic_blue", "aperture": "pro_silver", "aperture_door": "dark_grey",
+        "solar_wing_left": "pro_metallic_blue", "solar_mast_left": "dark_grey",
+        "solar_wing_right": "pro_metallic_magenta", "solar_mast_right": "dark_grey",
+        "antenna_front": "pro_silver", "antenna_back": "dark_grey",
+    },
+}
+
+
 def _hubble() -> Mockup:
     parts: list[Part] = []
 
@@ -174,30 +214,27 @@ def _hubble() -> Mockup:
     # Standing upright: aft shroud at the bottom, aperture door at the top.
     add("aft_shroud", ("pro_silver",), frustum(0.37, 0.37, -1.05, -0.45, 40))
     add("equipment_section", ("dark_grey",), frustum(0.38, 0.38, -0.45, 0.02, 12, smooth=False))
-    add("light_shield", ("pro_silver",), frustum(0.31, 0.31, 0.02, 1.02, 40, caps=False),
-        frustum(0.38, 0.31, 0.02, 0.06, 40, caps=False))
-    add("shield_bands", ("dark_grey",), frustum(0.315, 0.315, 0.42, 0.46, 40, caps=False),
-        frustum(0.315, 0.315, 0.78, 0.82, 40, caps=False))
+    add("light_shield", ("pro_silver",), frustum(0.31, 0.31, 0.02, 1.02, 40, caps=False))
+    add("light_shield_flare", ("pro_silver",), frustum(0.38, 0.31, 0.02, 0.06, 40, caps=False))
+    add("shield_band_lower", ("dark_grey",), frustum(0.315, 0.315, 0.42, 0.46, 40, caps=False))
+    add("shield_band_upper", ("dark_grey",), frustum(0.315, 0.315, 0.78, 0.82, 40, caps=False))
     add("aperture", ("dark_grey",), cylinder(0.305, 0.01, 40).moved((0, 0, 0.97)))
     # Door hinged at the back of the aperture, opened to about 105°.
     door = cylinder(0.32, 0.025, 40).moved((0, -0.32, 0))  # hinge line through the origin, along x
     add("aperture_door", ("pro_metallic_magenta", "dark_grey"),
         door.transformed(rot_x(-105.0), (0, 0.32, 1.03)))
-    # Two solar wings on masts to the left and right, long side parallel to the tube.
-    wings = []
-    for sgn in (-1.0, 1.0):
+    # Two solar wings on masts to the camera's left (−x) and right, long side parallel to the tube.
+    for sgn, side in ((-1.0, "left"), (1.0, "right")):
         x = sgn * 0.66
-        wings.append(panel(0.30, 1.36, 0.012, (x, 0, -0.15)))
-        wings.append(rod((sgn * 0.38, 0, -0.2), (sgn * 0.82, 0, -0.2), 0.018, 8))
-    add("solar_arrays", ("pro_metallic_blue",), *wings)
-    # High-gain antennas on booms towards and away from the camera.
-    hga = []
-    for sgn in (-1.0, 1.0):
+        add(f"solar_wing_{side}", ("pro_metallic_blue",), panel(0.30, 1.36, 0.012, (x, 0, -0.15)))
+        add(f"solar_mast_{side}", ("pro_metallic_blue",),
+            rod((sgn * 0.38, 0, -0.2), (sgn * 0.82, 0, -0.2), 0.018, 8))
+    # High-gain antennas on booms towards (front, −y) and away from the camera.
+    for sgn, side in ((-1.0, "front"), (1.0, "back")):
         y = sgn * 0.62
-        hga.append(rod((0, sgn * 0.30, 0.25), (0, y, 0.25), 0.016, 8))
-        hga.append(dish(0.13, 0.04, rings=4, sides=24).transformed(align_z((0, sgn, 0.3)), (0, y, 0.25)))
-    add("high_gain_antennas", ("pro_metallic_magenta",), *hga)
-    return Mockup("hubble", tuple(parts), (0.0, 0.0, -1.05))
+        add(f"antenna_{side}", ("pro_metallic_magenta",), rod((0, sgn * 0.30, 0.25), (0, y, 0.25), 0.016, 8),
+            dish(0.13, 0.04, rings=4, sides=24).transformed(align_z((0, sgn, 0.3)), (0, y, 0.25)))
+    return Mockup("hubble", tuple(parts), (0.0, 0.0, -1.05), HUBBLE_BUILDS)
 
 
 MOCKUPS: dict[str, Callable[[], Mockup]] = {"voyager": _voyager, "iss": _iss, "hubble": _hubble}
@@ -215,6 +252,19 @@ def stand(top: Sequence[float], bottom_z: float, scale: float) -> Mesh:
         box((0.16 * scale, 0.16 * scale, 0.06 * scale), (x, y, z - 0.03 * scale)),
         rod((x, y, z - 0.06 * scale), (x, y, bottom_z), 0.045 * scale, 20),
     ])
+
+
+def part_materials(m: Mockup, materials: Sequence[str], build: str | None = None) -> list[str]:
+    """One material per part of ``m``: the build's explicit part map when it has one and the
+    mounted materials are exactly the map's (a custom material list falls back to the
+    preferences), otherwise :func:`assign_materials`."""
+    table = m.builds.get(build.upper()) if build else None
+    if table is not None and set(table.values()) == set(materials):
+        missing = [p.name for p in m.parts if p.name not in table]
+        if missing:
+            raise KeyError(f"{m.name} {build} part map lacks {missing}")
+        return [table[p.name] for p in m.parts]
+    return assign_materials(m.parts, materials)
 
 
 def assign_materials(parts: Sequence[Part], materials: Sequence[str]) -> list[str]:

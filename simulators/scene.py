@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from m2s2hil.simulators.geometry import concat, rot_x, rot_z
 from m2s2hil.simulators.materials import GRID_NM, MaterialTable, band_average, material_table
-from m2s2hil.simulators.mockups import MOCKUPS, assign_materials, mockup, stand
+from m2s2hil.simulators.mockups import MOCKUPS, Mockup, mockup, part_materials, stand
 from m2s2hil.simulators.raster import rasterize
 from m2s2hil.simulators.shading import LightingParams, light_frame, lights_from_lamps, radiance_cube, shade
 
@@ -54,6 +54,8 @@ class MountedScene:
     tri_label: np.ndarray  # (M,) uint8
     radius: float  # bounding-sphere radius of the mockup (stand excluded)
     table: MaterialTable
+    build: str | None = None  # picks the mockup's part map for this build (Hubble B2 ≠ B3)
+    source: str = ""  # the lab's mesh it was loaded from (Scene.meshes); "": the built-in mockup
 
 
 @dataclass(frozen=True)
@@ -106,16 +108,20 @@ class Scene:
         self.lamp_spectrum = band_average(spd, self.bands_nm, self.fwhm_nm) / planck(np.array([560.0]),
                                                                                     self.params.lamp_cct_k)[0]
         self._lock = threading.Lock()
-        self._mounts: dict[tuple[str, tuple[str, ...]], MountedScene] = {}
+        self._mounts: dict[tuple[str, tuple[str, ...], str | None], MountedScene] = {}
+        # (satellite, build) → the lab's mesh mockup (simulators.meshes), used instead of the
+        # built-in one when a render names that build; set before the first render.
+        self.meshes: dict[tuple[str, str], Mockup] = {}
         self._geom_key: tuple | None = None
         self._geom: tuple | None = None
         self._shade_key: tuple | None = None
         self._shaded: Shaded | None = None
 
     # -- mounting --------------------------------------------------------------------
-    def mount(self, satellite: str, materials: Sequence[str]) -> MountedScene:
+    def mount(self, satellite: str, materials: Sequence[str], build: str | None = None) -> MountedScene:
         sat = satellite.strip().lower()
-        if sat not in MOCKUPS:
+        lab_mesh = self.meshes.get((sat, build.strip().upper())) if build else None
+        if lab_mesh is None and sat not in MOCKUPS:
             raise SceneError(f"no mockup model for satellite {satellite!r}; known: {', '.join(MOCKUPS)}")
         mats = tuple(materials)
         if not mats:
@@ -124,7 +130,7 @@ class Scene:
             raise SceneError(f"build of {satellite!r} lists a material twice: {list(mats)}")
         if len(mats) > 254:
             raise SceneError("too many materials for a uint8 label map")
-        key = (sat, mats)
+        key = (sat, mats, build)
         with self._lock:
             if key in self._mounts:
                 return self._mounts[key]
@@ -132,8 +138,8 @@ class Scene:
             table = material_table(mats, self.bands_nm, self.fwhm_nm)
         except KeyError as exc:
             raise SceneError(str(exc)) from None
-        m = mockup(sat)
-        chosen = assign_materials(m.parts, mats)
+        m = lab_mesh or mockup(sat)
+        chosen = part_materials(m, mats, build)
         primary = "pro_silver" if "pro_silver" in mats else mats[0]
         sat_mesh = concat(p.mesh for p in m.parts)
         lo, hi = sat_mesh.vertices.min(axis=0), sat_mesh.vertices.max(axis=0)
@@ -150,7 +156,8 @@ class Scene:
             satellite=sat, materials=mats, class_names=("background", *mats),
             part_materials={p.name: c for p, c in zip(m.parts, chosen, strict=True)} | {"stand": primary},
             vertices=mesh.vertices - centre, normals=mesh.normals, triangles=mesh.triangles,
-            tri_label=tri_label, radius=radius, table=table,
+            tri_label=tri_label, radius=radius, table=table, build=build,
+            source=lab_mesh.name if lab_mesh else "",
         )
         with self._lock:
             self._mounts[key] = mounted
@@ -166,14 +173,15 @@ class Scene:
         """Object → camera rotation: turntable about the vertical, then the tilt stage."""
         return rot_x(tilt_deg) @ OBJECT_TO_CAMERA @ rot_z(azimuth_deg)
 
-    def _geometry(self, mounted: MountedScene, az: float, tilt: float) -> tuple:
-        key = (mounted.satellite, mounted.materials, round(az, 4), round(tilt, 4))
+    def _geometry(self, mounted: MountedScene, az: float, tilt: float,
+                  offset: tuple[float, ...] = (0.0, 0.0, 0.0)) -> tuple:
+        key = (mounted.satellite, mounted.materials, mounted.build, round(az, 4), round(tilt, 4), offset)
         if key == self._geom_key and self._geom is not None:
             return self._geom
         rot = self.rotation(az, tilt)
         s = self.scale(mounted)
         cx, cy = self.width / 2.0, self.height / 2.0
-        cam = mounted.vertices @ rot.T
+        cam = (mounted.vertices + np.asarray(offset)) @ rot.T
         scr = np.column_stack([cx + s * cam[:, 0], cy - s * cam[:, 1], cam[:, 2]])
         nrm = mounted.normals @ rot.T
         depth, normals, label = rasterize(scr, nrm, mounted.triangles, mounted.tri_label, self.height,
@@ -182,12 +190,13 @@ class Scene:
         self._geom_key, self._geom = key, geom
         return geom
 
-    def _shadow_map(self, mounted: MountedScene, rot: np.ndarray, spot_dir: np.ndarray, s: float) -> tuple:
+    def _shadow_map(self, mounted: MountedScene, rot: np.ndarray, spot_dir: np.ndarray, s: float,
+                    offset: tuple[float, ...] = (0.0, 0.0, 0.0)) -> tuple:
         lmat = light_frame(spot_dir)
         ss = s * self.params.lighting.shadow_scale
         hs = max(8, round(self.height * self.params.lighting.shadow_scale))
         ws = max(8, round(self.width * self.params.lighting.shadow_scale))
-        lv = mounted.vertices @ (lmat @ rot).T
+        lv = (mounted.vertices + np.asarray(offset)) @ (lmat @ rot).T
         scr = np.column_stack([ws / 2.0 + ss * lv[:, 0], hs / 2.0 - ss * lv[:, 1], lv[:, 2]])
         smap, _, _ = rasterize(scr, None, mounted.triangles, mounted.tri_label, hs, ws, self.params.threads)
         return smap, lmat, ws / 2.0, hs / 2.0, ss
@@ -196,15 +205,19 @@ class Scene:
     def render(
         self, satellite: str, materials: Sequence[str], azimuth_deg: float, tilt_deg: float,
         lamp_output: Mapping[int, float], lamp_info: Mapping[int, Any], spot_angle_deg: float = 45.0,
-        band_gain: Sequence[float] | np.ndarray | None = None,
+        band_gain: Sequence[float] | np.ndarray | None = None, offset: Sequence[float] | None = None,
+        build: str | None = None,
     ) -> Shaded:
         """Render one view. ``rate`` is in units of ``band_gain`` × relative radiance
         (``lamp_spectrum[b]`` × reflectance × irradiance factor); without ``band_gain`` it is
-        the relative radiance itself.
+        the relative radiance itself. ``offset``: the mockup moved by this (object frame,
+        scene units) off the rotation axes (a mockup mounted off the turntable axis).
+        ``build``: the build's key, for mockups with a part map per build (``Mockup.builds``).
         """
+        off = (0.0, 0.0, 0.0) if offset is None else tuple(round(float(v), 6) for v in offset)
         if not (math.isfinite(azimuth_deg) and math.isfinite(tilt_deg)):
             raise SceneError(f"pose must be finite, got azimuth {azimuth_deg}, tilt {tilt_deg}")
-        mounted = self.mount(satellite, materials)
+        mounted = self.mount(satellite, materials, build)
         gain = self.lamp_spectrum.copy()
         if band_gain is not None:
             bg = np.asarray(band_gain, dtype=np.float64)
@@ -213,14 +226,15 @@ class Scene:
             gain = gain * bg
         lights = lights_from_lamps(lamp_output, lamp_info, spot_angle_deg, self.params.lighting)
         with self._lock:
-            geom_key = (mounted.satellite, mounted.materials, round(azimuth_deg, 4), round(tilt_deg, 4))
+            geom_key = (mounted.satellite, mounted.materials, mounted.build, round(azimuth_deg, 4),
+                        round(tilt_deg, 4), off)
             key = (geom_key, lights.key, gain.tobytes())
             if key == self._shade_key and self._shaded is not None:
                 return self._shaded
-            depth, nrm, label, centre, s, rot = self._geometry(mounted, azimuth_deg, tilt_deg)
+            depth, nrm, label, centre, s, rot = self._geometry(mounted, azimuth_deg, tilt_deg, off)
             shadow = None
             if lights.spot_dir is not None:
-                shadow = self._shadow_map(mounted, rot, lights.spot_dir, s)
+                shadow = self._shadow_map(mounted, rot, lights.spot_dir, s, off)
             t = mounted.table
             d, sp, rate = shade(
                 label, depth, nrm, centre, s, lights, shadow, t.rho, t.spec, t.shininess,

@@ -5,10 +5,17 @@ clock time, or, attached ``timed``, at a given clock time, so the camera can ask
 the stage was during an exposure that is already over); relay simulators set lamp
 channels; the camera simulator reads all of it to render a frame. Nothing here knows
 about bytes.
+
+The bench can also be set up wrong, as a real one is (``[simulation.mount]`` and
+``[simulation.lamps]`` of the rig file): a :class:`Placement` puts the mockup off the
+turntable axis, turned at azimuth 0, on a tilt stage whose zero is off, or has another
+satellite or build on the turntable than the session asked for; a lamp factor dims a lamp
+(0: dead). The capture-time checks of the twin (``m2s2hil.twin.checks``) are tested on them.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -20,6 +27,41 @@ class LampInfo:
     name: str
     kind: str  # "led_bar" | "spotlight"
     warmup_s: float
+
+
+@dataclass(frozen=True)
+class Placement:
+    """How the mockup really sits on the rig, where it differs from the nominal mount.
+
+    ``offset_x_mm``/``offset_y_mm``: the mockup's centre from the turntable axis, in the
+    turntable's frame at azimuth 0 (x to the camera's right, y away from the camera);
+    ``yaw_deg``: the mockup turned about its own vertical axis at azimuth 0;
+    ``tilt_bias_deg``: the tilt stage's true angle minus its read-back; ``satellite`` and
+    ``build``: what is really mounted (None: what the session mounted). ``diameter_mm`` is
+    the mockup's bounding-sphere diameter, which turns millimetres into the scene's units.
+    """
+
+    offset_x_mm: float = 0.0
+    offset_y_mm: float = 0.0
+    yaw_deg: float = 0.0
+    tilt_bias_deg: float = 0.0
+    satellite: str | None = None
+    build: str | None = None
+    diameter_mm: float = 160.0
+
+    @property
+    def nominal(self) -> bool:
+        """No displacement (another mockup mounted is a separate matter: ``satellite``/``build``)."""
+        return not (self.offset_x_mm or self.offset_y_mm or self.yaw_deg or self.tilt_bias_deg)
+
+    def offset_units(self, radius: float) -> tuple[float, float, float]:
+        """The offset in the mockup's object frame (scene units, bounding radius ``radius``),
+        undoing the yaw: a mockup at ``d`` turned by ``yaw`` and viewed at azimuth ``az`` is
+        the same mockup at ``rot_z(-yaw)·d`` viewed at ``az + yaw``."""
+        k = 2.0 * radius / self.diameter_mm
+        c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        x, y = self.offset_x_mm * k, self.offset_y_mm * k
+        return (c * x + s * y, -s * x + c * y, 0.0)
 
 
 @dataclass(frozen=True)
@@ -40,6 +82,8 @@ class World:
     target: str = "mockup"
     sensor_temperature_c: float = 35.0
     spot_angle_deg: float = 45.0  # spotlight incidence, from the camera axis, about vertical
+    placement: Placement = field(default_factory=Placement)
+    lamp_factor: dict[int, float] = field(default_factory=dict)  # relay channel -> output factor (0: dead)
 
     def __post_init__(self) -> None:
         self._lock = threading.RLock()
@@ -98,13 +142,16 @@ class World:
                 info = self.lamp_info.get(ch)
                 warm = info.warmup_s if info else 0.0
                 out[ch] = 1.0 if warm <= 0 else min(1.0, 0.5 + 0.5 * (now - since) / warm)
+                out[ch] *= self.lamp_factor.get(ch, 1.0)
         return out
 
     # -- scene -----------------------------------------------------------------------
     def mount(self, satellite: str, build: str) -> None:
-        """Put a mockup on the turntable (the operator's job on the bench)."""
+        """Put a mockup on the turntable (the operator's job on the bench); a placement that
+        names another satellite or build mounts that one instead (the operator's mistake)."""
         with self._lock:
-            self.satellite, self.build = satellite, build
+            self.satellite = self.placement.satellite or satellite
+            self.build = self.placement.build or build
             self.version += 1
 
     def set_target(self, target: str) -> None:

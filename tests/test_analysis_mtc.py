@@ -124,3 +124,65 @@ def test_align_option_forgives_permuted_cluster_ids() -> None:
     shifts = [(0, 1), (1, 0), (2, 3)]
     assert mtc(swapping, cube, shifts=shifts).score == 0.0
     assert mtc(swapping, cube, shifts=shifts, align=True).score == 1.0
+
+
+# -- a shift that changes what is fitted (ResampledFit) ------------------------------------
+class MedianSplit:
+    """Splits its foreground at the median of a seeded sample of it: the split moves with the sample
+    (shift-sensitive once the sample changes); ``fixed`` splits at 0.5 whatever it drew (stable)."""
+
+    name = "median-split"
+    foreground = "otsu"
+
+    def __init__(self, sample_size: int = 10_000, seed: int = 0, fixed: bool = False) -> None:
+        self.sample_size, self.seed, self.fixed = sample_size, seed, fixed
+        self.calls: list[tuple[int, int]] = []
+
+    def segment(self, cube: np.ndarray) -> np.ndarray:
+        x = cube[0]
+        fg = x > 0.05
+        vals = x[fg]  # raster order: the same for every shift of an object off the border
+        if vals.size > self.sample_size:
+            vals = vals[np.random.default_rng(self.seed).choice(vals.size, self.sample_size, replace=False)]
+        self.calls.append((self.seed, int(vals.size)))
+        t = 0.5 if self.fixed else float(np.median(vals))
+        return np.where(fg, np.where(x > t, 2, 1), 0)
+
+
+def _ramp_disc(n: int = 48) -> np.ndarray:
+    yy, xx = np.mgrid[:n, :n]
+    disc = (yy - n / 2) ** 2 + (xx - n / 2) ** 2 < (n / 3) ** 2
+    rng = np.random.default_rng(3)
+    values = np.where(disc, 0.2 + 0.8 * xx / n + rng.normal(0, 0.02, (n, n)), 0.001)
+    return np.stack([values, values])
+
+
+def test_fixed_sampling_fits_the_same_pixels_after_a_shift_resampling_does_not() -> None:
+    from m2s2hil.analysis.metrics.mtc import ResampledFit
+
+    cube = _ramp_disc()
+    n_fg = int((cube[0] > 0.05).sum())
+    seg = MedianSplit(sample_size=n_fg // 2)  # the sample is below the pool, but drawn by index
+    assert mtc(seg.segment, cube).score == 1.0  # issue 23: order invariance, not stability
+    wrapped = ResampledFit(seg)
+    r = mtc(wrapped, cube)
+    assert 0.5 < r.score < 0.99
+    # each prediction drew its own sample: seeds 0..8, a quarter of the foreground (the Otsu count)
+    cap = wrapped.sample_size(cube)
+    assert seg.calls[-9:] == [(k, cap) for k in range(9)] and 0.2 * n_fg < cap < 0.3 * n_fg
+    stable = ResampledFit(MedianSplit(fixed=True))
+    assert mtc(stable, cube).score == 1.0
+    with pytest.raises(AnalysisInputError, match="sample_size"):
+        ResampledFit(lambda c: c[0] > 0)
+    with pytest.raises(AnalysisInputError, match="fraction"):
+        ResampledFit(seg, fraction=0.0)
+
+
+def test_resampled_spectral_segmenter_is_stable_on_a_clear_scene() -> None:
+    from m2s2hil.analysis.metrics.mtc import ResampledFit
+    from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
+    from m2s2hil.analysis.study.synthetic import synthetic_scene
+
+    cube, _ = synthetic_scene((48, 48), n_materials=3, noise=0.005, seed=1)
+    r = mtc(ResampledFit(SpectralSegmenter(max_materials=5)), cube, k=4, align=True)
+    assert r.score > 0.95

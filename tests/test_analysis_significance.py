@@ -89,3 +89,20 @@ def test_bad_input(a: list[float], b: list[float], rho: float | str, argument: s
     with pytest.raises(AnalysisInputError) as err:
         paired_t_test(a, b, rho)  # type: ignore[arg-type]
     assert err.value.argument == argument
+
+
+def test_assumed_and_observed_side_by_side() -> None:
+    from m2s2hil.analysis.metrics.significance import assumed_and_observed
+
+    a = [0.90, 0.70, 0.80, 0.60, 0.85, 0.65, 0.75, 0.72]
+    b = [0.62, 0.78, 0.58, 0.76, 0.64, 0.72, 0.60, 0.70]  # anti-correlated with a
+    both = assumed_and_observed(a, b, rho=0.9)
+    assert both.assumed.rho == 0.9 and both.assumed.stars == "**"
+    assert both.observed.p == pytest.approx(stats.ttest_rel(a, b).pvalue) and both.observed.stars == ""
+    assert both.rho_observed == pytest.approx(stats.pearsonr(a, b).statistic)
+    assert not both.agree and "at observed ρ = -0.75" in both.describe()
+    # A clear difference carries the same marks, in the same direction, at either ρ.
+    same = assumed_and_observed([0.80, 0.82, 0.84, 0.86, 0.88], [0.70, 0.73, 0.73, 0.765, 0.78])
+    assert same.assumed.stars == same.observed.stars == "**" and same.agree
+    const = assumed_and_observed([1.0, 1.0, 1.0], [0.5, 0.6, 0.7])
+    assert math.isnan(const.rho_observed) and "undefined" in const.describe()

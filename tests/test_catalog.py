@@ -1,6 +1,14 @@
+"""The catalog (Table 1 of the paper) and where the simulator's mockups put each filament."""
+
+import numpy as np
 import pytest
+from m2s2hil.simulators.mockups import HUBBLE_BUILDS, assign_materials, mockup, part_materials
+from m2s2hil.simulators.scene import Scene
+from m2s2hil.simulators.world import LampInfo
+from scipy import ndimage
 
 from m2s2hil.catalog import load_catalog
+from m2s2hil.config import DEFAULT_LAYOUT, CameraModel
 from m2s2hil.errors import CatalogError
 
 # Table 1 of the M2S2 paper, transcribed independently of catalog.toml's order.
@@ -53,3 +61,67 @@ def test_lookup_is_case_insensitive_and_errors_are_clear():
 
 def test_class_names_start_with_background():
     assert load_catalog().class_names("hubble", "B2")[0] == "background"
+
+
+# -- where the filaments sit (simulators/mockups.py) ------------------------------------------
+N = 128
+LAMPS = {i: LampInfo(f"bar{i + 1}", "led_bar", 1.0) for i in range(5)}
+STRONG = dict.fromkeys(range(5), 1.0)
+VIEWS = ((0.0, 15.0), (90.0, 15.0), (180.0, -15.0), (270.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    cam = CameraModel()
+    return Scene(N, N, cam.bands_nm, cam.fwhm_nm, DEFAULT_LAYOUT)
+
+
+def test_every_build_shows_exactly_its_catalog_materials(scene):
+    cat = load_catalog()
+    for sat in cat.satellites.values():
+        for build in sat.builds.values():
+            mats = build.materials
+            seen: set[int] = set()
+            for az, tilt in VIEWS:
+                shaded = scene.render(sat.key, mats, az, tilt, STRONG, LAMPS, build=build.key)
+                seen |= set(np.unique(shaded.label).tolist())
+            assert shaded.mount.class_names == ("background", *mats)
+            assert seen == set(range(len(mats) + 1)), (sat.key, build.key, sorted(seen))
+
+
+def test_hubble_part_maps_use_the_catalog_filaments():
+    cat = load_catalog()
+    m = mockup("hubble")
+    assert set(m.builds) == set(cat.satellite("hubble").builds)
+    for key, table in HUBBLE_BUILDS.items():
+        assert set(table) == {p.name for p in m.parts}, key
+        assert set(table.values()) == set(cat.build("hubble", key).materials), key
+    # B2 is what the parts' preferences give; a custom material list falls back to them.
+    b2 = cat.build("hubble", "B2").materials
+    assert part_materials(m, b2, "B2") == assign_materials(m.parts, b2)
+    assert set(part_materials(m, ["pro_silver", "wood"], "B3")) == {"pro_silver", "wood"}
+
+
+def _regions(label: np.ndarray) -> int:
+    """Connected regions of one material, summed over the materials (background left out)."""
+    return sum(ndimage.label(label == k)[1] for k in range(1, int(label.max()) + 1))
+
+
+def test_hubble_b3_places_its_filaments_differently_from_b2(scene):
+    mats = load_catalog().build("hubble", "B3").materials
+    assert set(mats) == set(load_catalog().build("hubble", "B2").materials)  # Table 1
+    regions = {"B2": 0, "B3": 0}
+    share = {"B2": np.zeros(len(mats) + 1), "B3": np.zeros(len(mats) + 1)}
+    for az, tilt in VIEWS:
+        labels = {b: scene.render("hubble", mats, az, tilt, STRONG, LAMPS, build=b).label.copy()
+                  for b in ("B2", "B3")}
+        fg = labels["B2"] > 0
+        assert np.array_equal(fg, labels["B3"] > 0)  # the same print geometry
+        assert (labels["B2"][fg] != labels["B3"][fg]).mean() > 0.3, (az, tilt)
+        for b, lab in labels.items():
+            regions[b] += _regions(lab)
+            share[b] += np.bincount(lab.ravel(), minlength=len(mats) + 1)
+    # "The most complex case": more separate material regions, and no filament dominating.
+    assert regions["B3"] > 1.2 * regions["B2"], regions
+    top = {b: v[1:].max() / v[1:].sum() for b, v in share.items()}
+    assert top["B3"] < 0.4 < top["B2"], top

@@ -3,7 +3,9 @@ control, the live stream, snapshots, calibration captures, plan estimates, the s
 
 from __future__ import annotations
 
+import asyncio
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -11,10 +13,11 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-from api_support import daemon, long_sweep, sweep
+from api_support import daemon, long_sweep, small_rig_config, sweep
+from m2s2hil.drivers.interfaces import Frame
 
 from m2s2hil.processing.calibration import load_calibration
-from m2s2hil.rig.live_view import HIST_BINS
+from m2s2hil.rig.live_view import HIST_BINS, LiveFrame, LiveNotice, LiveSettings, LiveStream
 
 
 @pytest.fixture
@@ -31,6 +34,11 @@ def wait_idle(d, axis: str, timeout: float = 30.0) -> dict:
             return axes[axis]
         assert time.monotonic() < deadline, "the axis never stopped"
         time.sleep(0.01)
+
+
+def mjpeg_frames(body: bytes) -> list[tuple[dict[str, str], bytes]]:
+    """The frame parts of a live stream (not its notices, nor the part saying why it ended)."""
+    return [(f, jpeg) for f, jpeg in mjpeg_parts(body) if "X-Live-Stats" in f]
 
 
 def mjpeg_parts(body: bytes) -> list[tuple[dict[str, str], bytes]]:
@@ -99,8 +107,10 @@ def test_live_stream_frames_and_statistics(d) -> None:
     assert d.client.put("/camera/live", json={"exposure_s": 0.004, "view": "rgb"}).status_code == 200
     r = d.client.get("/camera/live.mjpeg", params={"max_frames": 3})
     assert r.status_code == 200 and r.headers["content-type"].startswith("multipart/x-mixed-replace")
-    parts = mjpeg_parts(r.content)
+    parts = mjpeg_frames(r.content)
     assert len(parts) == 3
+    end = json.loads(mjpeg_parts(r.content)[-1][0]["X-Live-End"])  # the last part says why it ended
+    assert end["frames"] == 3 and "max_frames" in end["reason"]
     size = d.rig.config.camera.model.width // d.rig.config.camera.model.period
     seqs = []
     for fields, jpeg in parts:
@@ -112,13 +122,49 @@ def test_live_stream_frames_and_statistics(d) -> None:
         assert st["exposure_s"] == pytest.approx(0.004)
         seqs.append(st["seq"])
     assert seqs == sorted(set(seqs))  # each frame once, in order
+    status = d.client.get("/camera/live").json()
+    assert status["state"] in ("streaming", "idle") and status["stream_fps"] > 0
+    assert status["cold_start_s"] is not None and "stopped_reason" in status
     r = d.client.put("/camera/live", json={"view": 3, "gain": 2.0})
     assert r.json()["settings"]["view"] == 3
-    (fields, _), = mjpeg_parts(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)
+    (fields, _), = mjpeg_frames(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)
     st = json.loads(fields["X-Live-Stats"])
     assert st["view"] == 3 and st["gain"] == 2.0
     assert d.client.put("/camera/live", json={"view": 99}).status_code == 422
     assert d.client.put("/camera/live", json={"exposure_s": -1}).status_code == 422
+
+
+def test_live_view_waits_for_a_cold_camera_and_says_why_it_stopped() -> None:
+    """A camera slow to give its first frame: the viewer is told what the stream waits for (no
+    timeout ends it), gets the frame once it comes, and the stream's stop has its reason."""
+    model = small_rig_config(64).camera.model
+    gate = threading.Event()
+
+    def grab(settings: LiveSettings) -> Frame:
+        assert gate.wait(30), "the test never released the camera"
+        return Frame(np.full((64, 64), 100, np.uint16), 1, 0.0, settings.exposure_s, settings.gain,
+                     "Mono10", 25.0)
+
+    live = LiveStream(model, grab, idle_stop_s=0.0)
+
+    async def view() -> list:
+        got: list = []
+        async for item in live.aframes(max_frames=1, notice_s=0.05):
+            got.append(item)
+            if len(got) == 2:
+                assert live.state == "starting" and live.fps is None
+                gate.set()
+        return got
+
+    got = asyncio.run(view())
+    assert [type(g) for g in got[:2]] == [LiveNotice, LiveNotice], got
+    assert got[0].state == "waiting" and "first frame" in got[0].reason
+    assert isinstance(got[-1], LiveFrame) and live.cold_start_s is not None and live.cold_start_s > 0
+    deadline = time.monotonic() + 30
+    while live.running:  # no viewer left: the producer stops, and says why
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert live.state == "idle" and "no viewer" in (live.stopped_reason or "")
 
 
 def test_live_view_longer_exposure_saturates_more(d) -> None:
@@ -126,7 +172,7 @@ def test_live_view_longer_exposure_saturates_more(d) -> None:
     fractions = []
     for exposure in (0.001, 0.2):
         d.client.put("/camera/live", json={"exposure_s": exposure})
-        (fields, _), = mjpeg_parts(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)
+        (fields, _), = mjpeg_frames(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)
         fractions.append(json.loads(fields["X-Live-Stats"])["saturated_fraction"])
     assert fractions[0] < fractions[1]
 

@@ -117,12 +117,12 @@ def test_markdown_marks_and_csv_columns():
     md = table2.to_markdown(rows, notes=["a note"])
     line = next(x for x in md.splitlines() if x.startswith("| Voyager"))
     cells = [c.strip() for c in line.strip("|").split("|")]
-    # Sat Build Classes Elev Images | P rgb, multi | R rgb, multi | D rgb, multi | mTC Dir Weak Strong
+    # Sat Build Classes Elev Images | P, R, Dice: rgb, multi, ρ̂ | mTC Dir Weak Strong
     assert cells[:5] == ["Voyager", "B2", "5", "E0", "5"]
     assert cells[5:7] == ["0.6500", "0.6500"]
-    assert cells[7] == f"**{np.mean(RGB_REC):.4f}**\\*" and cells[8] == f"{np.mean(MULTI_REC):.4f}"
-    assert cells[9] == f"{np.mean(RGB_DICE):.4f}" and cells[10] == f"***{np.mean(MULTI_DICE):.4f}***\\*\\*"
-    assert cells[11:] == ["0.9400", "0.9800", "0.5000"]
+    assert cells[8] == f"**{np.mean(RGB_REC):.4f}**\\*" and cells[9] == f"{np.mean(MULTI_REC):.4f}"
+    assert cells[11] == f"{np.mean(RGB_DICE):.4f}" and cells[12] == f"***{np.mean(MULTI_DICE):.4f}***\\*\\*"
+    assert cells[14:] == ["0.9400", "0.9800", "0.5000"]
     assert "- a note" in md
     hub = next(x for x in md.splitlines() if x.startswith("| Hubble | B3"))
     assert "–" in hub  # one image: no test, no mark
@@ -153,7 +153,7 @@ def test_notes_say_when_there_is_no_ground_truth():
     text = " ".join(table2.notes(res, rows))
     assert "only the ground-truth-free mTC" in text
     md = table2.to_markdown(rows)
-    assert md.splitlines()[2].count("–") == 6
+    assert md.splitlines()[2].count("–") == 9  # P, R, Dice: RGB, Multi, ρ̂
 
 
 def test_speed_accuracy_aggregates_per_segmenter():
@@ -185,3 +185,39 @@ def test_options_refuse_an_rgb_segmenter_as_the_multispectral_one():
     with pytest.raises(UsageError):
         EvalOptions(mtc_for="some")
     assert EvalOptions(multi="spectral-smooth").segmenters == ("spectral-smooth", "rgb-smooth")
+
+
+# Negatively correlated pairs (observed ρ ≈ −0.75): p = 0.003 at the assumed ρ = 0.9, 0.26 at the observed.
+DISAGREE_MULTI = [0.90, 0.70, 0.80, 0.60, 0.85, 0.65, 0.75, 0.72]
+DISAGREE_RGB = [0.62, 0.78, 0.58, 0.76, 0.64, 0.72, 0.60, 0.70]
+
+
+def test_observed_rho_beside_the_assumed_and_a_note_where_they_disagree():
+    recs = records() + [
+        rec(i, sat="iss", build="B3", multi=scores(0.5, 0.5, m), rgb=scores(0.5, 0.4, r))
+        for i, (m, r) in enumerate(zip(DISAGREE_MULTI, DISAGREE_RGB, strict=True))
+    ]
+    rows = table2.build_rows(recs, multi="spectral", rgb="rgb", rho=0.9)
+    iss = next(r for r in rows if r.satellite == "iss")
+    dice = iss.cells["dice"]
+    assert dice.test.p == pytest.approx(hand_p(DISAGREE_MULTI, DISAGREE_RGB, 0.9)[1]) and dice.stars == "**"
+    assert dice.observed.p == pytest.approx(stats.ttest_rel(DISAGREE_MULTI, DISAGREE_RGB).pvalue)
+    assert dice.rho_observed == pytest.approx(stats.pearsonr(DISAGREE_MULTI, DISAGREE_RGB).statistic)
+    assert dice.stars_observed == "" and dice.winner_observed is None and not dice.agrees
+    # Voyager's Dice is significant either way (observed ρ ≈ 1): the marks agree, no dagger.
+    vd = rows[0].cells["dice"]
+    assert vd.agrees and vd.stars_observed == "**" and vd.winner_observed == "multi"
+    md = table2.to_markdown(rows)
+    line = next(x for x in md.splitlines() if x.startswith("| ISS"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[13] == f"{dice.rho_observed:.2f} – †"
+    vline = next(x for x in md.splitlines() if x.startswith("| Voyager"))
+    vcells = [c.strip() for c in vline.strip("|").split("|")]
+    assert vcells[13] == f"{vd.rho_observed:.2f} \\*\\* M"
+    notes = [x for x in md.splitlines() if x.startswith("- †")]
+    assert len(notes) == 1 and "ISS B3 E0 Dice" in notes[0]
+    assert "at assumed ρ = 0.9" in notes[0] and f"p = {dice.observed.p:.2g} at observed ρ = -0.75" in notes[0]
+    data = {d["satellite"]: d for d in csv.DictReader(io.StringIO(table2.to_csv(rows)))}
+    assert data["ISS"]["dice_mark"] == "**" and data["ISS"]["dice_mark_observed"] == ""
+    assert data["ISS"]["dice_marks_agree"] == "False" and data["Voyager"]["dice_marks_agree"] == "True"
+    assert float(data["ISS"]["dice_p_observed"]) == pytest.approx(dice.observed.p)

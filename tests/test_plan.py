@@ -20,8 +20,10 @@ from m2s2hil.plan import (
     estimate_continuous,
     move_time_s,
     parse_sweep,
+    physical_floor,
     switch_warmup_s,
 )
+from m2s2hil.plan.floor import reach_time_s
 
 
 def make_rig(**changes) -> RigConfig:
@@ -321,3 +323,54 @@ def test_a_sweep_refuses_what_its_schema_refuses(bad) -> None:
         parse_sweep({"satellite": "hubble", "build": "B2", **bad})
     ok = parse_sweep({"satellite": "hubble", "build": "B2", "azimuth_step_deg": 30})
     assert ok.azimuth_step_deg == 30.0  # an int is still a number
+
+
+# ------------------------------------------------------------------ physical floor
+def test_physical_floor_of_a_tiny_plan_by_hand():
+    rig = make_rig()
+    s = Sweep(satellite="hubble", build="B1", lighting=["weak", "directional"], tilts=["E1"],
+              azimuth_step_deg=90, dark={"frames": 2}, axis_order="light>tilt>azimuth", reorder=False)
+    ev = s.expand(rig)
+    fl = physical_floor(ev, rig)
+    period = 1 / 65  # > every exposure: the camera's frame rate sets the frame period
+    darks = 2 * 2 * period  # two exposures, two dark frames each
+    first_pose = frames(ev)[0].azimuth_deg
+    first = max(darks, 1.0, reach_time_s(first_pose, rig.axes["turntable"]))  # bars warm 1 s
+    sweep = 2 * 270 / 60  # each pass travels 270 deg at the turntable's top speed
+    gap = 2.0  # the snake turns back where it stopped; the spotlight warms 2 s
+    assert fl.passes == 2
+    assert fl.breakdown["darks_and_first_move"] == pytest.approx(first)
+    assert fl.breakdown["sweep"] == pytest.approx(sweep)
+    assert fl.breakdown["gaps"] == pytest.approx(gap)
+    assert fl.total_s == pytest.approx(first + sweep + gap)
+    assert 8 * period < fl.total_s  # more than the frames alone
+
+
+def test_physical_floor_is_below_every_mode_and_every_order(rig):
+    for kw in ({}, {"frames_per_pose": 3, "azimuth_step_deg": 30}, {"lighting": ["strong"], "tilts": ["E0"]},
+               {"axis_order": "azimuth>tilt>light", "reorder": False}):
+        s = Sweep(satellite="voyager", build="B2", **kw)
+        est = s.estimate(rig)
+        floor = s.physical_floor(rig)
+        assert est.physical_floor_s == pytest.approx(floor.total_s)
+        assert 0 < floor.total_s <= est.lower_bound_s <= est.total_s
+        assert floor.total_s <= physical_floor(s.expand(rig), rig).total_s + 1e-9
+        cont = s.model_copy(update={"mode": "continuous"})
+        if kw.get("axis_order") is None:
+            assert floor.total_s <= cont.estimate(rig).total_s
+
+
+def test_full_build_floor_is_the_turntables_travel_plus_the_unavoidable_gaps(rig):
+    s = Sweep(satellite="hubble", build="B2")
+    fl = s.physical_floor(rig)
+    assert fl.passes == 9  # one per lighting and tilt: the azimuths innermost
+    assert fl.breakdown["sweep"] == pytest.approx(9 * 350 / 60)  # 3150 deg at 60 deg/s
+    # three tilts: at least two 15 deg tilt moves between passes (lamps warm meanwhile)
+    assert fl.breakdown["gaps"] >= 2 * move_time_s(15, rig.axes["tilt"]) - 1e-9
+    assert fl.total_s < s.estimate(rig).lower_bound_s / 2  # stop-and-go is far from physics
+
+
+def test_slower_turntable_raises_the_floor():
+    fast, slow = make_rig(), make_rig(**{"axes.turntable.max_speed_dps": 30.0})
+    s = Sweep(satellite="hubble", build="B1", lighting=["weak"], tilts=["E1"])
+    assert s.physical_floor(slow).total_s > s.physical_floor(fast).total_s + 5

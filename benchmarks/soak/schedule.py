@@ -9,6 +9,9 @@ from dataclasses import dataclass
 LIGHTINGS = ("weak", "strong", "directional")
 TILTS = ("E0", "E1", "E2")
 SATELLITES = (("voyager", "B3"), ("hubble", "B2"), ("iss", "B2"))
+# every soak does each of these at least once, however short or loaded
+ONCE = ("e-stops", "operator holds", "releases", "live-view viewers", "sessions submitted (small)",
+        "sessions submitted (full)")
 
 
 @dataclass(frozen=True)

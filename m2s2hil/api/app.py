@@ -44,7 +44,7 @@ from m2s2hil.store.folder import software_version
 
 from . import handlers
 from .common import ERRORS, StrictJSONResponse, require_token
-from .console import browser, calibration, live, manual, page, snapshots
+from .console import browser, calibration, live, manual, page, pictures, snapshots
 from .guards.csrf import HEADER, CrossSiteGuard
 from .guards.hosts import HostAllowList
 from .guards.security import BodyLimit
@@ -57,7 +57,7 @@ GUARDED_ROUTERS: list[APIRouter] = [sessions.router, frames.router, queue.router
                                     lens.router,
                                     # the operator console's (docs/console.md)
                                     manual.router, live.router, snapshots.router, calibration.router,
-                                    browser.router, page.router]
+                                    browser.router, page.router, pictures.router]
 OPEN_ROUTERS: list[APIRouter] = [daemon.open_router, page.open_router]
 
 

@@ -116,9 +116,11 @@ def _print_plan(sweep: Sweep, config: RigConfig) -> None:
     t.add_row("axis order", sweep.chosen_order(config))
     t.add_row("mode", sweep.mode)
     t.add_row("estimated duration", f"{est.total_s:.1f} s")
-    t.add_row("lower bound", f"{est.lower_bound_s:.1f} s")
     for k, v in est.breakdown.items():
         t.add_row(f"  {k}", f"{v:.1f} s")
+    t.add_row("lower bound (this mode)", f"{est.lower_bound_s:.1f} s")
+    if est.physical_floor_s is not None:  # any mode, any order: m2s2hil/plan/floor.py
+        t.add_row("physical floor (any mode)", f"{est.physical_floor_s:.1f} s")
     if sweep.mode == "continuous":
         from m2s2hil.plan import estimate_continuous
 

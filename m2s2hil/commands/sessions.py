@@ -63,6 +63,28 @@ def repair_cmd(
     typer.echo(report.line())
 
 
+@app.command("register")
+def register_cmd(
+    session: str = typer.Argument(..., help="session id"),
+    root: Path | None = typer.Option(None, "--root", help="data root"),
+    max_frames: int = typer.Option(24, "--max-frames", min=3, max=500, help="frames to fit, spread over the sweep"),
+) -> None:
+    """Register the twin to a session's frames (offset, yaw, tilt bias, scale) and store it."""
+    from m2s2hil.store.catalogue import default_data_root
+    from m2s2hil.store.session import SessionStore
+    from m2s2hil.twin.registration import register_session
+
+    store = SessionStore.open(root or default_data_root(), session, mode="write")
+    try:
+        reg = register_session(store, max_frames=max_frames)
+    finally:
+        store.close()
+    p = reg.placement
+    typer.echo(f"registered {session}: offset ({p.dx_mm:+.2f}, {p.dy_mm:+.2f}) mm, yaw {p.yaw_deg:+.2f} deg, "
+               f"tilt bias {p.tilt_bias_deg:+.2f} deg, scale {p.scale:.3f}; residual {reg.residual:.3f} "
+               f"over {reg.frames} frames ({reg.azimuth_span_deg:.0f} deg of azimuth)")
+
+
 @app.command("show")
 def show_cmd(
     session: str = typer.Argument(..., help="session id"),
@@ -81,6 +103,11 @@ def show_cmd(
         qc = qc_summary(store.frames())
         if qc.get("scored"):
             summary["qc"] = qc
+        from m2s2hil.twin.registration import stored_registration
+
+        registration = stored_registration(store)
+        if registration is not None:
+            summary["registration"] = registration
         problems = store.verify() if verify else None
     finally:
         store.close()

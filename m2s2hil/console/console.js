@@ -17,16 +17,22 @@ function headers(json) {
 }
 
 async function api(method, path, body) {
-  const res = await fetch(path, { method, headers: headers(body !== undefined),
-    body: body === undefined ? undefined : JSON.stringify(body) });
+  // a failed poll (GET) is cleared by the next good poll, a failed action by the next good action
+  const kind = method === "GET" ? "read" : "action";
+  let res;
+  try {
+    res = await fetch(path, { method, headers: headers(body !== undefined),
+      body: body === undefined ? undefined : JSON.stringify(body) });
+  } catch (e) { throw Object.assign(new ApiError(0, "daemon unreachable: " + e.message), { kind }); }
   if (res.status === 401) { showLogin(); throw new ApiError(401, "token needed"); }
   const type = res.headers.get("content-type") || "";
   const data = type.includes("json") ? await res.json() : await res.text();
   if (!res.ok) {
     let detail = data && data.detail !== undefined ? data.detail : data;
     if (Array.isArray(detail)) detail = detail.map((d) => (d.loc || []).join(".") + ": " + d.msg).join("; ");
-    throw new ApiError(res.status, String(detail));
+    throw Object.assign(new ApiError(res.status, String(detail)), { kind });
   }
+  if (state.bannerKind === kind) banner("");
   return data;
 }
 
@@ -36,20 +42,28 @@ async function blobUrl(path) {
   return URL.createObjectURL(await res.blob());
 }
 
+// The banner: "info" goes by itself; "read"/"action" errors until the next success of their kind
+// (see api) or the dismiss button; "stop" until the queue is released.
 let bannerTimer = null;
 function banner(text, kind) {
   const b = $("banner");
   clearTimeout(bannerTimer);
+  state.bannerKind = text ? (kind || "action") : null;
   if (!text) { b.hidden = true; return; }
-  b.textContent = text; b.className = kind || ""; b.hidden = false;
-  if (kind === "info") bannerTimer = setTimeout(() => { b.hidden = true; }, 6000);  // errors stay
+  $("banner-text").textContent = text; b.className = kind || ""; b.hidden = false;
+  if (kind !== "info") announce(text);
+  if (kind === "info") bannerTimer = setTimeout(() => { b.hidden = true; state.bannerKind = null; }, 6000);
 }
+$("banner-close").addEventListener("click", () => banner(""));
+// The assertive live region: screen readers read the stop and errors at once (emptied first, so
+// the same message twice is read twice).
+function announce(text) { const a = $("announce"); a.textContent = ""; setTimeout(() => { a.textContent = text; }, 30); }
 
 function report(el, text, ok) { el.textContent = text; el.className = "result " + (ok ? "ok" : "bad"); }
 
 async function guarded(fn, el) {
   try { return await fn(); } catch (e) {
-    if (el) report(el, e.message, false); else banner(e.message);
+    if (el) { report(el, e.message, false); announce(e.message); } else banner(e.message, e.kind);
     return undefined;
   }
 }
@@ -78,12 +92,29 @@ async function emergencyStop() {
   try {
     const r = await api("POST", "/rig/stop");
     banner("EMERGENCY STOP: " + (r.safe ? "rig safe (lamps off, motion stopped)" : "rig NOT confirmed safe: " +
-      r.errors.join("; ")) + ". The queue is held until released.");
-  } catch (e) { banner("EMERGENCY STOP FAILED: " + e.message); }
-  refreshStatus();
+      r.errors.join("; ")) + ". The queue is held until released.", "stop");
+  } catch (e) { banner("EMERGENCY STOP FAILED: " + e.message, "stop"); }
+  await refreshStatus();
+  if (!$("estop-release").hidden) $("estop-release").focus();  // Release is where the stop was pressed
 }
 $("estop").addEventListener("click", emergencyStop);
-document.addEventListener("keydown", (ev) => { if (ev.key === "Escape") { ev.preventDefault(); emergencyStop(); } });
+// Esc stops the rig except where Esc means "close" or "cancel": in a text field, a drop-down, an
+// open dialog or menu (there it does its usual thing). Shift+Esc and F2 stop from anywhere (F2 for
+// browsers that keep Shift+Esc for their task manager).
+const ESC_CLOSES = "input:not([type=checkbox]):not([type=radio]):not([type=button]):not([type=submit]), " +
+  "select, textarea, dialog[open], [role=menu], [role=listbox], [role=dialog], .overlay:not([hidden])";
+function escMeansClose(target) {
+  if (document.querySelector("dialog[open], [role=dialog]:not([hidden]), .overlay:not([hidden])")) return true;
+  return Boolean(target && target.closest && target.closest(ESC_CLOSES));
+}
+document.addEventListener("keydown", (ev) => {
+  const always = ev.key === "F2" || (ev.key === "Escape" && ev.shiftKey);
+  if (always || (ev.key === "Escape" && !ev.defaultPrevented && !escMeansClose(ev.target))) {
+    ev.preventDefault(); emergencyStop();
+  }
+});
+$("estop-release").addEventListener("click", () => guarded(() => api("POST", "/queue/release"))
+  .then((r) => { if (r) banner(""); refreshStatus(); }));
 
 // ------------------------------------------------------------------ rig status chip + axes
 async function refreshStatus() {
@@ -92,7 +123,9 @@ async function refreshStatus() {
   const chip = $("rig-status");
   if (q.running) { chip.textContent = "session " + q.running; chip.className = "chip busy"; }
   else if (q.held) { chip.textContent = "held: " + q.held; chip.className = "chip bad"; }
+  else if (q.items && q.items.length) { chip.textContent = "queued: " + q.items.length; chip.className = "chip busy"; }
   else { chip.textContent = "rig idle"; chip.className = "chip ok"; }
+  $("estop-release").hidden = !q.held;
   renderQueue(q);
 }
 
@@ -131,13 +164,14 @@ function buildAxes(a) {
     const jog = el("div", undefined, "row");
     for (const step of [-10, -1, -0.1, 0.1, 1, 10]) {
       const b = button((step > 0 ? "+" : "") + step, () => manual("jog", ax.role, { delta_deg: step }), "manual");
-      b.dataset.jog = ax.role + ":" + step; jog.append(b);
+      b.dataset.jog = ax.role + ":" + step; b.setAttribute("aria-label", `jog ${ax.role} ${b.textContent}°`); jog.append(b);
     }
     const go = el("div", undefined, "row");
     const inp = el("input"); inp.type = "number"; inp.step = "0.1"; inp.min = ax.min_deg; inp.max = ax.max_deg; inp.value = "0";
-    inp.dataset.goto = ax.role;
+    inp.dataset.goto = ax.role; inp.setAttribute("aria-label", `${ax.role} target °`);
     go.append(inp, button("Go to", () => manual("goto", ax.role, { position_deg: Number(inp.value) }), "manual"),
       button("Stop", () => manual("stop", ax.role), "manual"));
+    go.lastChild.setAttribute("aria-label", `stop the ${ax.role}`);
     if (ax.homing === "switches") go.append(button("Home", () => manual("home", ax.role), "manual"));
     else go.append(button("Set origin here", () => { if (confirm(`Make where the ${ax.role} stands its 0°?`)) manual("origin", ax.role); }, "manual"));
     d.append(head, jog, go); box.append(d);
@@ -212,6 +246,7 @@ async function startLive() {
 function stopLive(abort = true) {
   if (state.live && abort) state.live.ctl.abort();
   state.live = null; $("live-toggle").textContent = "Start";
+  $("live-canvas").setAttribute("aria-label", "live view: stopped (" + $("live-note").textContent + ")");
 }
 
 async function showFrame(jpeg, fields) {
@@ -241,6 +276,11 @@ async function showFrame(jpeg, fields) {
   $("st-focus").textContent = st.focus.toExponential(2) + " @" + st.focus_band_nm + " nm";
   $("st-temp").textContent = st.temperature_c.toFixed(1) + " °C";
   histogram(st.histogram || [], st.full_scale);
+  // the canvases' text alternatives say what they show (screen readers cannot see the pixels)
+  $("live-canvas").setAttribute("aria-label", `live view, ${$("live-view").selectedOptions[0]?.textContent ?? ""}: ` +
+    $("live-note").textContent + ($("live-overlay").checked ? ` · crosshair and turntable axis at ${st.axis_x ?? 0.5}` : ""));
+  $("histogram").setAttribute("aria-label", `histogram of the live frame (log scale): ${$("st-sat").textContent} ` +
+    `saturated, 99.9th percentile ${$("st-p999").textContent}`);
 }
 
 function overlay(ctx, w, h, axisX) {
@@ -315,6 +355,8 @@ function buildForm(cat) {
     lab.append(cb, document.createTextNode(lt.name)); $("f-light").append(lab);
     const o = el("option", lt.name); o.value = k; $("w-light").append(o);
   }
+  // a white panel wants even light: a diffuse preset (not the first, the directional spotlight)
+  if (cat.lighting.strong) $("w-light").value = "strong";
   for (const e of cat.elevations) {
     const lab = el("label"); const cb = el("input"); cb.type = "checkbox"; cb.value = e; cb.checked = true;
     lab.append(cb, document.createTextNode(e)); $("f-tilts").append(lab);

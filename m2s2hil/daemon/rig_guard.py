@@ -26,6 +26,7 @@ from m2s2hil.rig.operations import RigOps
 from . import estop, listing
 from .errors import HoldNotSaved
 from .estop import SafeCheck
+from .move_targets import MoveTargets
 from .rigstate import device_states
 
 if TYPE_CHECKING:
@@ -47,12 +48,15 @@ class RigGuard:
         self.cam = threading.Lock()
         #: Called with the rig, holding the device lock, just before a session's engine starts.
         self.before_session: list[Callable[[Rig], None]] = []
+        #: The last manual move's target per axis: relative jogs start there (:mod:`.move_targets`).
+        self.targets = MoveTargets()
 
     # ------------------------------------------------------------------ sessions
     def start_engine(self, engine: Engine) -> None:
         """Hand the rig to a session: the before-session hooks (e.g. the console's live view
         stops streaming), then the engine, holding the device lock."""
         with self.hw, self.cam:
+            self.targets.forget()  # the session moves the axes itself
             for hook in self.before_session:
                 try:
                     hook(self.rig)
@@ -151,6 +155,7 @@ class RigGuard:
         check, stop_errors = estop.stop_rig(self.rig, self.hw, job, grace_s=self.estop_grace_s,
                                             timeout_s=self.estop_timeout_s)
         errors += stop_errors
+        self.targets.forget()  # the axes stopped wherever they were
         eng = job.engine if job is not None else None
         if job is not None and eng is not None and eng.state is RunState.ABORTED:
             job.finished.wait(5.0)  # its run has given the session's owner lock back

@@ -13,11 +13,13 @@ restores the results from the journal instead of metering again.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from m2s2hil.config import CameraModel
+from m2s2hil.drivers.interfaces import SplitSnap
 from m2s2hil.engine.exposure_search import ExposureResult, find_exposure
 from m2s2hil.plan import AutoExposureSettings, CaptureEvent, Sweep
 from m2s2hil.rig.opened import Rig
@@ -45,6 +47,26 @@ class CameraControl:
 
     def snap(self, exposure_s: float) -> Any:
         return self.rig.camera.snap(timeout=exposure_s + self.snap_timeout_s)
+
+    def snap_then(self, exposure_s: float, after_exposure: Callable[[], object]) -> Any:
+        """A snap that calls ``after_exposure`` once the exposure has ended and before the frame
+        is read out (the stage heads for the next pose during the readout). A camera that cannot
+        split its snap (:class:`~m2s2hil.drivers.interfaces.SplitSnap`) snaps, then calls it.
+        The frame is read even when ``after_exposure`` raises, so no stale frame is left for
+        the next trigger (its error is raised after)."""
+        cam = self.rig.camera
+        if not isinstance(cam, SplitSnap):
+            frame = cam.snap(timeout=exposure_s + self.snap_timeout_s)
+            after_exposure()
+            return frame
+        cam.trigger()
+        # The exposure began no later than the trigger's acknowledgement.
+        self.rig.clock.sleep(exposure_s)
+        try:
+            after_exposure()
+        finally:
+            frame = cam.read_triggered(timeout=exposure_s + self.snap_timeout_s)
+        return frame
 
 
 class ExposureMeter:

@@ -22,7 +22,8 @@ class EngineOptions:
     with each frame (simulated rigs only); ``snap_timeout_s``: added to the exposure as the
     snap timeout (default: the rig's camera timeout); ``processor_factory``: the frame
     processor (default :class:`m2s2hil.processing.chain.FrameProcessor`); ``continuous``:
-    the turntable speed and mark matching of continuous mode.
+    the turntable speed and mark matching of continuous mode; ``overlap``: stop-and-go starts
+    the move to the next pose as soon as an exposure ends (the readout runs during the move).
     """
 
     process_depth: int = 4
@@ -34,6 +35,7 @@ class EngineOptions:
     snap_timeout_s: float | None = None
     processor_factory: ProcessorFactory | None = None
     continuous: SpeedSettings = field(default_factory=SpeedSettings)
+    overlap: bool = True
 
     @classmethod
     def of(cls, *, speed_dps: float | None = None, max_blur_px: float | None = None,

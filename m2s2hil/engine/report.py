@@ -17,7 +17,7 @@ from m2s2hil.engine.pipeline import Pipeline
 from m2s2hil.engine.schedule import UnitSchedule
 from m2s2hil.engine.state import EngineStatus, FaultInfo, RunState
 from m2s2hil.engine.steps import CaptureSteps
-from m2s2hil.plan import CaptureEvent, Sweep, estimate
+from m2s2hil.plan import CaptureEvent, Sweep, estimate, physical_floor
 from m2s2hil.rig.opened import Rig
 from m2s2hil.rig.operations import RigOps
 
@@ -75,6 +75,9 @@ class RunReport:
         self.condition: CaptureEvent | None = None  # lighting and elevation in front of the camera
         self.efficiency: float | None = None
         self.lower_bound_s: float | None = None
+        #: The least rig time of any mode (m2s2hil.plan.floor) and the efficiency against it.
+        self.physical_floor_s: float | None = None
+        self.physical_efficiency: float | None = None
         self._eta_basis: float | None = None
         self._eta_cache: tuple[int, float | None] = (-1, None)
 
@@ -134,11 +137,16 @@ class RunReport:
             return None
         if stored >= set(self.schedule.by_id):
             lower = self.steps.lower_bound_s()
+            floor = self.sweep.physical_floor(self.rig.config).total_s
         else:
             ran = [e for e in self.schedule.events if e.event_id in stored]
-            lower = estimate(ran, self.rig.config).lower_bound_s
+            overlap = getattr(self.steps, "overlap", False)
+            lower = estimate(ran, self.rig.config, overlap=overlap).lower_bound_s
+            floor = physical_floor(ran, self.rig.config).total_s
         self.lower_bound_s = lower
         self.efficiency = lower / elapsed
+        self.physical_floor_s = floor
+        self.physical_efficiency = floor / elapsed
         return self.efficiency
 
     def summary(self, final: RunState, *, faults: int, error: str | None, lens_on: bool,
@@ -152,6 +160,8 @@ class RunReport:
             "skipped": sorted(self.schedule.skipped_ids()),
             "lower_bound_s": self.lower_bound_s,
             "efficiency": self.efficiency,
+            "physical_floor_s": self.physical_floor_s,
+            "physical_efficiency": self.physical_efficiency,
             "faults": faults,
             "error": error,
             "mode": self.sweep.mode,

@@ -520,7 +520,7 @@ def make_steps(rig: Rig, store: SessionStore, sweep: Sweep, ops: RigOps, frames:
     )
     if sweep.mode == "continuous":
         return ContinuousSteps(kit, opts.continuous)
-    return StopAndGoSteps(kit)
+    return StopAndGoSteps(kit, overlap=opts.overlap)
 
 
 def _record_end(store: SessionStore, final: RunState, summary: dict[str, Any]) -> BaseException | None:

@@ -2,9 +2,9 @@
 expands to in the cheapest order, and how long that takes.
 
 ``model`` holds the vocabulary (exposure and dark policies, events and their ids), ``estimate``
-the duration model and its lower bound, ``order`` the search over loop nestings, ``sweep`` the
-sweep itself; they import one way (model ← estimate ← order ← sweep). The names below are the
-package's API.
+the duration model and its stop-and-go lower bound, ``floor`` the physical floor of any mode,
+``order`` the search over loop nestings, ``sweep`` the sweep itself; they import one way
+(model ← estimate ← floor ← order ← sweep). The names below are the package's API.
 """
 
 from m2s2hil.plan.estimate import (
@@ -15,6 +15,7 @@ from m2s2hil.plan.estimate import (
     move_time_s,
     switch_warmup_s,
 )
+from m2s2hil.plan.floor import PhysicalFloor, physical_floor
 from m2s2hil.plan.model import (
     AXES,
     DEFAULT_EXPOSURE_S,
@@ -38,6 +39,7 @@ __all__ = [
     "ContinuousEstimate",
     "DarkPolicy",
     "FixedExposure",
+    "PhysicalFloor",
     "PlanError",
     "PlanEstimate",
     "Sweep",
@@ -49,5 +51,6 @@ __all__ = [
     "frame_event_id",
     "move_time_s",
     "parse_sweep",
+    "physical_floor",
     "switch_warmup_s",
 ]

@@ -53,9 +53,11 @@ def switch_warmup_s(rig: RigConfig, previous: str | None, new: str) -> float:
 
 class PlanEstimate(PlanModel):
     total_s: float
-    lower_bound_s: float
+    lower_bound_s: float  # the stop-and-go floor of this order (see estimate)
     breakdown: dict[str, float]  # seconds per component of total_s
     counts: dict[str, int] = Field(default_factory=dict)
+    #: The least rig time of any mode (m2s2hil.plan.floor), when the caller computed it.
+    physical_floor_s: float | None = None
 
 
 def _settle(ev: CaptureEvent, rig: RigConfig, moved: Iterable[str]) -> float:
@@ -68,13 +70,19 @@ def _settle(ev: CaptureEvent, rig: RigConfig, moved: Iterable[str]) -> float:
 
 
 def estimate(events: Sequence[CaptureEvent], rig: RigConfig, *,
-             start_pose: tuple[float, float] = (0.0, 0.0), parallel_axes: bool = False) -> PlanEstimate:
+             start_pose: tuple[float, float] = (0.0, 0.0), parallel_axes: bool = False,
+             overlap: bool = False) -> PlanEstimate:
     """Duration of a stop-and-go event list from ``start_pose`` (turntable, tilt).
 
     ``total_s`` models the engine: axes moved one after the other unless
     ``parallel_axes``, then settle, then lamp warm-up, then exposure + readout.
     ``lower_bound_s`` is the physics floor of the same order: axes in parallel, warm-up
     overlapping the move, no settle.
+
+    ``overlap`` models the overlapped engine (``EngineOptions.overlap``): the move to the
+    next pose starts when an exposure ends, so a frame's readout runs during the next move;
+    the lamps switch once the frame is read, so their warm-up runs from the end of the
+    readout, alongside the rest of the move. Only the readout no move hides is counted.
     """
     tt, tl = rig.axes["turntable"], rig.axes["tilt"]
     readout = 1.0 / rig.camera.model.max_fps
@@ -82,12 +90,14 @@ def estimate(events: Sequence[CaptureEvent], rig: RigConfig, *,
     light: str | None = None
     b = dict(motion=0.0, settle=0.0, warmup=0.0, exposure=0.0, readout=0.0, dark=0.0)
     lower = 0.0
+    carry = 0.0  # overlap: the last frame's readout, still under way when the next move starts
     n = dict(frames=0, darks=0, dark_frames=0, moves=0, switches=0)
     for ev in events:
         if ev.kind == "dark":
-            t = ev.n_frames * (ev.exposure_s + readout)
+            t = ev.n_frames * (ev.exposure_s + readout) + carry
             b["dark"] += t
             lower += t
+            carry = 0.0
             n["darks"] += 1
             n["dark_frames"] += ev.n_frames
             continue
@@ -105,13 +115,22 @@ def estimate(events: Sequence[CaptureEvent], rig: RigConfig, *,
         settle = _settle(ev, rig, moved)
         b["motion"] += move
         b["settle"] += settle
-        b["warmup"] += warm
         b["exposure"] += ev.exposure_s
-        b["readout"] += readout
-        lower += max(max(t_tt, t_tl), warm) + ev.exposure_s + readout
+        if overlap:
+            base = move + settle
+            b["readout"] += max(0.0, carry - base)  # the part of the last readout no move hid
+            b["warmup"] += max(0.0, carry + warm - max(base, carry))
+            lower += max(max(t_tt, t_tl), carry + warm, carry) + ev.exposure_s
+            carry = readout
+        else:
+            b["warmup"] += warm
+            b["readout"] += readout
+            lower += max(max(t_tt, t_tl), warm) + ev.exposure_s + readout
         n["frames"] += 1
         n["moves"] += bool(moved)
         pos["turntable"], pos["tilt"] = ev.azimuth_deg, ev.tilt_deg
+    b["readout"] += carry  # the last frame's
+    lower += carry
     total = sum(b.values())
     return PlanEstimate(total_s=total, lower_bound_s=min(lower, total), breakdown=b, counts=n)
 
@@ -130,8 +149,9 @@ class ContinuousEstimate(PlanModel):
     lower_bound_s: float
     breakdown: dict[str, float]
 
-    def as_plan_estimate(self) -> PlanEstimate:
-        return PlanEstimate(total_s=self.total_s, lower_bound_s=self.lower_bound_s, breakdown=self.breakdown)
+    def as_plan_estimate(self, physical_floor_s: float | None = None) -> PlanEstimate:
+        return PlanEstimate(total_s=self.total_s, lower_bound_s=self.lower_bound_s, breakdown=self.breakdown,
+                            physical_floor_s=physical_floor_s)
 
 
 def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,

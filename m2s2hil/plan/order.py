@@ -14,11 +14,12 @@ from __future__ import annotations
 import itertools
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from m2s2hil.config import RigConfig
 from m2s2hil.plan.estimate import estimate, turntable_range
+from m2s2hil.plan.floor import PhysicalFloor, physical_floor
 from m2s2hil.plan.model import (
     AXES,
     DEFAULT_AXIS_ORDER,
@@ -148,50 +149,76 @@ def _materialise(sweep: Sweep, steps: Sequence[_Step]) -> list[CaptureEvent]:
 
 
 _PLAN_CACHE: OrderedDict[tuple[str, str], tuple[tuple[CaptureEvent, ...], str]] = OrderedDict()
+_FLOOR_CACHE: OrderedDict[tuple[str, str], PhysicalFloor] = OrderedDict()
 _PLAN_CACHE_SIZE = 16
 _PLAN_LOCK = threading.Lock()
 
 
-def best_plan(sweep: Sweep, rig: RigConfig) -> tuple[list[CaptureEvent], str]:
+def _cached(cache: OrderedDict, sweep: Sweep, rig: RigConfig, compute: Callable[[], Any]) -> Any:
     # Scoring ~100 candidate orders takes a fraction of a second; the engine, store and API
     # all expand the same sweep, so keep the last few results (events are frozen).
     key = (sweep.model_dump_json(), rig.digest)
     with _PLAN_LOCK:
-        hit = _PLAN_CACHE.get(key)
+        hit = cache.get(key)
         if hit is not None:
-            _PLAN_CACHE.move_to_end(key)
+            cache.move_to_end(key)
     if hit is None:
-        events, order = _search_plan(sweep, rig)
-        hit = (tuple(events), order)
+        hit = compute()
         with _PLAN_LOCK:
-            _PLAN_CACHE[key] = hit
-            while len(_PLAN_CACHE) > _PLAN_CACHE_SIZE:
-                _PLAN_CACHE.popitem(last=False)
+            cache[key] = hit
+            while len(cache) > _PLAN_CACHE_SIZE:
+                cache.popitem(last=False)
+    return hit
+
+
+def best_plan(sweep: Sweep, rig: RigConfig) -> tuple[list[CaptureEvent], str]:
+    def compute() -> tuple[tuple[CaptureEvent, ...], str]:
+        events, order = _search_plan(sweep, rig)
+        return tuple(events), order
+
+    hit = _cached(_PLAN_CACHE, sweep, rig, compute)
     return list(hit[0]), hit[1]
 
 
-def _search_plan(sweep: Sweep, rig: RigConfig) -> tuple[list[CaptureEvent], str]:
-    if sweep.axis_order == "auto":
+def sweep_floor(sweep: Sweep, rig: RigConfig) -> PhysicalFloor:
+    """The sweep's physical floor: the least of :func:`physical_floor` over every nesting and
+    condition/tilt order the search knows, whatever the sweep's own order settings (so no
+    capture of these frames on this rig can take less). Computed when asked, then cached."""
+    def compute() -> PhysicalFloor:
+        floors = (physical_floor(steps, rig) for _o, steps in _candidates(sweep, rig, every=True))  # type: ignore[arg-type]
+        return min(floors, key=lambda f: f.total_s)
+
+    return _cached(_FLOOR_CACHE, sweep, rig, compute)
+
+
+def _candidates(sweep: Sweep, rig: RigConfig, *, every: bool = False) -> Iterator[tuple[str, list[_Step]]]:
+    """The candidate event lists: loop nestings x condition orders x tilt orders (only those
+    the sweep allows unless ``every``)."""
+    if sweep.axis_order == "auto" or every:
         orders = [o for o in itertools.permutations(AXES)
-                  if sweep.mode != "continuous" or o[2] == "azimuth"]
+                  if every or sweep.mode != "continuous" or o[2] == "azimuth"]
         # Listed first = preferred on ties: the paper's nesting.
         orders.sort(key=lambda o: ">".join(o) != DEFAULT_AXIS_ORDER)
     else:
         orders = [tuple(sweep.axis_order.split(">"))]
-    if sweep.reorder:
+    if sweep.reorder or every:
         light_orders = list(itertools.permutations(sweep.lighting))
         by_angle = sorted(sweep.tilts, key=lambda e: rig.elevations[e])
         tilt_orders = [list(sweep.tilts)] + [t for t in (by_angle, by_angle[::-1]) if t != list(sweep.tilts)]
     else:
         light_orders = [tuple(sweep.lighting)]
         tilt_orders = [list(sweep.tilts)]
-    best: tuple[float, list[_Step], str] | None = None
     for order in orders:
         for lights in light_orders:
             for tilts in tilt_orders:
-                steps = _build_steps(sweep, rig, order, lights, tilts)
-                cost = estimate(steps, rig).total_s  # type: ignore[arg-type]
-                if best is None or cost < best[0] - 1e-9:
-                    best = (cost, steps, ">".join(order))
+                yield ">".join(order), _build_steps(sweep, rig, order, lights, tilts)
+
+
+def _search_plan(sweep: Sweep, rig: RigConfig) -> tuple[list[CaptureEvent], str]:
+    best: tuple[float, list[_Step], str] | None = None
+    for order, steps in _candidates(sweep, rig):
+        cost = estimate(steps, rig).total_s  # type: ignore[arg-type]
+        if best is None or cost < best[0] - 1e-9:
+            best = (cost, steps, order)
     assert best is not None
     return _materialise(sweep, best[1]), best[2]

@@ -20,6 +20,7 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.config import RigConfig
 from m2s2hil.errors import CatalogError, validation_problem
 from m2s2hil.plan.estimate import PlanEstimate, estimate, estimate_continuous
+from m2s2hil.plan.floor import PhysicalFloor
 from m2s2hil.plan.model import (
     AXES,
     AutoExposureSettings,
@@ -30,7 +31,7 @@ from m2s2hil.plan.model import (
     PlanModel,
     condition_key,
 )
-from m2s2hil.plan.order import best_plan
+from m2s2hil.plan.order import best_plan, sweep_floor
 
 
 class Sweep(PlanModel):
@@ -166,11 +167,18 @@ class Sweep(PlanModel):
         """The axis nesting :meth:`expand` uses (resolves ``"auto"``)."""
         return best_plan(self, rig)[1]
 
+    def physical_floor(self, rig: RigConfig) -> PhysicalFloor:
+        """The least rig time any capture of this sweep can take on ``rig`` (any mode, any
+        order): :func:`m2s2hil.plan.order.sweep_floor`."""
+        return sweep_floor(self, rig)
+
     def estimate(self, rig: RigConfig, *, radius_px: float = 400.0) -> PlanEstimate:
+        """The mode's duration model and its own bound, with the physical floor beside them."""
         events = self.expand(rig)
+        floor = self.physical_floor(rig).total_s
         if self.mode == "continuous":
-            return estimate_continuous(self, rig, radius_px=radius_px, events=events).as_plan_estimate()
-        return estimate(events, rig)
+            return estimate_continuous(self, rig, radius_px=radius_px, events=events).as_plan_estimate(floor)
+        return estimate(events, rig).model_copy(update={"physical_floor_s": floor})
 
 
 def parse_sweep(data: Any, source: str = "<sweep>") -> Sweep:

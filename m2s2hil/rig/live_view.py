@@ -11,7 +11,11 @@ gain and timestamps.
 number of browsers share one camera conversation; each viewer gets the newest frame when it is
 ready for one (a slow viewer skips frames instead of queueing them). A viewer on an event loop
 (the daemon's) waits with :meth:`LiveStream.aframes`, which holds no thread while it waits: the
-producer wakes it through its loop. Each grab goes through
+producer wakes it through its loop. A viewer is never dropped for want of a frame while the
+producer runs (a cold start at 2048² — the camera starting, the first readout, the kernels
+compiling — may take longer than any fixed timeout on a loaded machine): it gets a
+:class:`LiveNotice` saying what the stream waits for instead, and :attr:`LiveStream.state` and
+:attr:`LiveStream.stopped_reason` say what the stream does and why it last stopped. Each grab goes through
 ``grab`` (a callable the daemon wraps with its device lock and its session check), so the live
 view never talks to the camera while a session owns it.
 """
@@ -52,6 +56,23 @@ class LiveFrame:
     seq: int
     jpeg: bytes
     stats: dict[str, Any] = field(default_factory=dict)
+    #: The raw mosaic it was rendered from (the camera's own buffer, not copied), for the
+    #: spectrum at a point (m2s2hil/api/console/pictures.py).
+    raw: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class LiveNotice:
+    """What a viewer gets instead of a frame: ``state`` is ``"waiting"`` (the camera is starting or
+    slow; the stream goes on), ``"busy"`` (a session owns the rig) or ``"error"`` (a device error,
+    retried); ``reason`` says it in words."""
+
+    state: str
+    reason: str
+
+
+#: How long a viewer waits for a frame before it is told what the stream waits for.
+WAIT_NOTICE_S = 2.0
 
 
 class LiveRenderer:
@@ -108,7 +129,7 @@ class LiveRenderer:
             "captured_at": grabbed_at,  # the frame in host memory (the live view's latency starts here)
             "render_ms": round(1e3 * (time.perf_counter() - t0), 2),
         }
-        return LiveFrame(seq, buf.tobytes(), stats)
+        return LiveFrame(seq, buf.tobytes(), stats, raw=raw)
 
 
 def _set_all(events: list[asyncio.Event]) -> None:
@@ -148,6 +169,14 @@ class LiveStream:
         self._generation = 0  # bumped by every settings change
         self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()  # aframes() viewers
         self.frames_produced = 0
+        #: "idle" (no producer), "starting" (no frame yet), "streaming", "busy", "error".
+        self.state = "idle"
+        #: Why the producer last stopped (None before its first stop).
+        self.stopped_reason: str | None = None
+        #: Seconds from the producer's start to its first frame, for the last start.
+        self.cold_start_s: float | None = None
+        self._started_at = 0.0
+        self._frame_times: list[float] = []  # monotonic times of the last frames (rate)
 
     # -- settings ----------------------------------------------------------------------------
     @property
@@ -183,11 +212,39 @@ class LiveStream:
     def viewers(self) -> int:
         return self._viewers
 
+    @property
+    def fps(self) -> float | None:
+        """Frames per second produced over the last (up to) 20 frames, while streaming."""
+        with self._cond:
+            t = self._frame_times
+            if self.state != "streaming" or len(t) < 2 or t[-1] <= t[0]:
+                return None
+            return (len(t) - 1) / (t[-1] - t[0])
+
+    @property
+    def running(self) -> bool:
+        """True while the producer thread runs (the stream is starting, streaming or retrying)."""
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
     # -- producing ---------------------------------------------------------------------------
     def _ensure_running(self) -> None:
         if self._thread is None or not self._thread.is_alive():
-            self._thread = threading.Thread(target=self._produce, name="live-view", daemon=True)
+            self.state, self._started_at, self.cold_start_s = "starting", time.monotonic(), None
+            self._frame_times = []
+            self._thread = threading.Thread(target=self._produce_or_fail, name="live-view", daemon=True)
             self._thread.start()
+
+    def _produce_or_fail(self) -> None:
+        try:
+            self._produce()
+        except BaseException as exc:  # the producer died: its viewers end with the reason
+            with self._cond:
+                self._thread = None
+                self.state = "error"
+                self.stopped_reason = f"the live view failed: {type(exc).__name__}: {exc}"
+                self._notify()
+            raise
 
     def _produce(self) -> None:
         next_at = 0.0
@@ -199,6 +256,9 @@ class LiveStream:
             with self._cond:
                 if self._viewers == 0 and time.monotonic() - self._last_viewer > self.idle_stop_s:
                     self._thread = None
+                    self.state = "idle"
+                    self.stopped_reason = (f"no viewer for {self.idle_stop_s:g} s: the camera stopped "
+                                           "streaming")
                     stopping = True
                 else:
                     stopping = False
@@ -215,12 +275,14 @@ class LiveStream:
             except LiveViewBusy as exc:
                 with self._cond:
                     self._error = str(exc)
+                    self.state = "busy"
                     self._notify()
                 time.sleep(0.25)
                 continue
             except Exception as exc:  # a device error: shown to the viewers, retried
                 with self._cond:
                     self._error = f"{type(exc).__name__}: {exc}"
+                    self.state = "error"
                     self._notify()
                 time.sleep(0.5)
                 continue
@@ -236,6 +298,11 @@ class LiveStream:
                 self._latest = live
                 self._error = None
                 self.frames_produced += 1
+                now = time.monotonic()
+                if self.cold_start_s is None:
+                    self.cold_start_s = now - self._started_at
+                self.state = "streaming"
+                self._frame_times = [*self._frame_times[-19:], now]
                 self._notify()
 
     def frames(self, *, max_frames: int | None = None, timeout_s: float = 10.0) -> Iterator[LiveFrame | str]:
@@ -274,10 +341,13 @@ class LiveStream:
                 self._last_viewer = time.monotonic()
 
     async def aframes(self, *, max_frames: int | None = None,
-                      timeout_s: float = 10.0) -> AsyncGenerator[LiveFrame | str, None]:
-        """:meth:`frames` for a viewer on an event loop: it waits without a thread. The viewer counts
-        from its first step until the generator is closed (the daemon closes it when the
-        connection goes)."""
+                      notice_s: float = WAIT_NOTICE_S) -> AsyncGenerator[LiveFrame | LiveNotice, None]:
+        """Newest frames for one viewer on an event loop, each at most once; it waits without a
+        thread. Instead of a frame: a :class:`LiveNotice` when the camera is unavailable (``busy``,
+        ``error``), and one every ``notice_s`` without a frame (``waiting``: starting, or slow).
+        Ends after ``max_frames`` frames, or when the producer has stopped for good
+        (:attr:`stopped_reason`). The viewer counts from its first step until the generator is
+        closed (the daemon closes it when the connection goes)."""
         waiter = (asyncio.get_running_loop(), asyncio.Event())
         with self._cond:
             self._viewers += 1
@@ -288,22 +358,25 @@ class LiveStream:
         try:
             while max_frames is None or sent < max_frames:
                 with self._cond:
-                    item: LiveFrame | str | None = None
+                    item: LiveFrame | LiveNotice | None = None
                     if self._latest is not None and self._latest.seq > last:
                         item = self._latest
                         last = self._latest.seq
                     elif self._error is not None:
-                        item, self._error = self._error, None
+                        item = LiveNotice("busy" if self.state == "busy" else "error", self._error)
+                        self._error = None
+                    elif not self.running and self.state != "starting":
+                        return  # the producer has stopped for good: stopped_reason says why
                     else:
                         waiter[1].clear()  # under the lock: a frame after this sets it again
                 if item is None:
                     try:
-                        await asyncio.wait_for(waiter[1].wait(), timeout_s)
+                        await asyncio.wait_for(waiter[1].wait(), notice_s)
                     except TimeoutError:
-                        return
+                        yield LiveNotice("waiting", self._waiting_for())
                     continue
                 yield item
-                if isinstance(item, str):
+                if isinstance(item, LiveNotice):
                     await asyncio.sleep(0.25)
                 else:
                     sent += 1
@@ -312,6 +385,12 @@ class LiveStream:
                 self._viewers -= 1
                 self._waiters.discard(waiter)
                 self._last_viewer = time.monotonic()
+
+    def _waiting_for(self) -> str:
+        since = time.monotonic() - self._started_at
+        if self.state == "starting":
+            return f"waiting for the camera's first frame ({since:.0f} s since the stream started)"
+        return "waiting for the next frame from the camera"
 
     def snapshot(self) -> LiveFrame | None:
         with self._cond:

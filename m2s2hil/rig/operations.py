@@ -113,6 +113,18 @@ class RigOps:
         self._moved_at = self.clock.monotonic()
         return True
 
+    def start_move(self, role: AxisRole, target: float) -> bool:
+        """Command a move to ``target`` without waiting (the stage heads for the next pose
+        while a frame is read out); the next :meth:`move` to it waits and verifies. False if
+        the axis is there already."""
+        tol = self.rig.config.axes[role].tolerance_deg
+        cur = self._pose[role]
+        if cur is not None and abs(cur - target) <= tol / 2:
+            return False
+        self._pose[role] = None
+        self.axis(role).move_to(target, wait=False)
+        return True
+
     def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[AxisRole]:
         """Tilt first (it changes rarely), then the turntable; returns the axes moved."""
         order: tuple[tuple[AxisRole, float], ...] = (("tilt", tilt_deg), ("turntable", azimuth_deg))

@@ -245,13 +245,15 @@ RESERVED_ROLES = ("raw", "cube", "preview")
 
 
 def extra_file(name: str, role: str, arr: np.ndarray, event_id: str) -> tuple[str, bytes]:
-    """A frame's extra 2-D array as a file (relative path, bytes): integer arrays that fit 8
-    or 16 bits as PNG, others as TIFF."""
+    """A frame's extra 2-D array (or 8-bit RGB image) as a file (relative path, bytes): integer
+    arrays that fit 8 or 16 bits and RGB images as PNG, others as TIFF."""
     if role in RESERVED_ROLES or not re.fullmatch(r"[a-z][a-z0-9_]{0,31}", role):
         raise UsageError(f"invalid extra file role {role!r}: lower-case letters, digits, '_'; "
                          f"not {', '.join(RESERVED_ROLES)}")
+    if isinstance(arr, np.ndarray) and arr.ndim == 3 and arr.shape[2] == 3 and arr.dtype == np.uint8:
+        return f"frames/{name}.{role}.png", encode_png(arr)  # an 8-bit RGB image (a synthetic render)
     if not isinstance(arr, np.ndarray) or arr.ndim != 2:
-        raise InvalidImage(f"extra {role!r} must be a 2-D array")
+        raise InvalidImage(f"extra {role!r} must be a 2-D array (or 8-bit RGB)")
     if arr.dtype.kind in "ui" or arr.dtype == np.bool_:
         lo, hi = (int(arr.min()), int(arr.max())) if arr.size else (0, 0)
         for dt in (np.uint8, np.uint16):

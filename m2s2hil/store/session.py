@@ -38,6 +38,7 @@ caller key the store owns is refused. Recommended keys, used by export: ``exposu
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from collections.abc import Mapping
 from pathlib import Path
@@ -85,6 +86,9 @@ from m2s2hil.store.records import (
     skip_record,
 )
 
+SessionKind = Literal["hil", "synthetic"]
+KIND_EVENT = "session_kind"  # the event that marks a session's kind (absent: "hil")
+
 
 class SessionStore:
     """An open session. Create with :meth:`create`, reopen with :meth:`open`."""
@@ -108,15 +112,27 @@ class SessionStore:
     # ------------------------------------------------------------ lifecycle
     @classmethod
     def create(cls, root: str | Path, sweep: Sweep, rig: RigConfig, *, session_id: str | None = None,
-               clock: Clock = SYSTEM_CLOCK) -> SessionStore:
-        """A new session folder (m2s2hil.store.folder.create_folder), open for writing."""
+               clock: Clock = SYSTEM_CLOCK, kind: SessionKind = "hil") -> SessionStore:
+        """A new session folder (m2s2hil.store.folder.create_folder), open for writing.
+        ``kind="synthetic"``: the twin's renders (m2s2hil.twin.synth), marked by the log's
+        first event (``session_kind``), so every reader of the journal keeps working."""
         root = Path(root)
         now = clock.wall()
         sid = check_session_id(session_id) if session_id else new_session_id(sweep, now)
         if (root / sid).exists():
             raise SessionExists(root / sid)
         create_folder(root, sid, sweep, rig, now=now)
-        return cls.open(root, sid, clock=clock, mode="write")
+        store = cls.open(root, sid, clock=clock, mode="write")
+        if kind != "hil":
+            store.record_event(KIND_EVENT, {"kind": kind})
+        return store
+
+    @property
+    def kind(self) -> SessionKind:
+        """``"hil"`` (captured on the rig, simulated or real) or ``"synthetic"`` (rendered)."""
+        rows = self.journal.query("SELECT payload FROM events WHERE kind = ? ORDER BY seq LIMIT 1",
+                                  (KIND_EVENT,))
+        return json.loads(rows[0]["payload"]).get("kind", "hil") if rows else "hil"
 
     @classmethod
     def open(cls, root: str | Path, session_id: str, *, clock: Clock = SYSTEM_CLOCK,
@@ -247,7 +263,7 @@ class SessionStore:
             for role, (rel, _) in files.items()
         }
 
-    def write_frame(self, event: CaptureEvent, raw: np.ndarray, cube: np.ndarray | None = None,
+    def write_frame(self, event: CaptureEvent, raw: np.ndarray | None, cube: np.ndarray | None = None,
                     preview_rgb: np.ndarray | None = None, meta: dict | None = None, *,
                     extra: Mapping[str, np.ndarray] | None = None) -> FrameRecord:
         """Write a frame's files, then commit its journal row. DuplicateEvent if the event is
@@ -258,7 +274,10 @@ class SessionStore:
         (m2s2hil.store.cubes.cube_is_stored); otherwise :meth:`read_cube` recomputes it.
         ``extra``: more 2-D arrays stored with the frame under their role name (e.g.
         ``{"truth_labels": labels}`` → ``frames/<event>.truth_labels.png``), checksummed and
-        committed with it: integer arrays that fit 8 or 16 bits as PNG, others as TIFF."""
+        committed with it: integer arrays that fit 8 or 16 bits as PNG, others as TIFF.
+        ``raw=None`` only in a synthetic session: a render has no mosaic, its images are extras."""
+        if raw is None and self.kind != "synthetic":
+            raise UsageError(f"frame {event.event_id}: a raw mosaic is required in a {self.kind} session")
         if event.kind != "frame":
             raise UsageError(f"write_frame got a {event.kind} event ({event.event_id}); use write_dark")
         m = self.rig.camera.model
@@ -270,7 +289,7 @@ class SessionStore:
         try:
             full, text = self._meta(event, meta, cube_stored=keep_cube)
             name = safe_name(event.event_id)
-            files: dict[str, tuple[str, bytes]] = {
+            files: dict[str, tuple[str, bytes]] = {} if raw is None else {
                 "raw": (f"frames/{name}.raw.tiff",
                         encode_raw(raw, text, (m.height, m.width), compress=fmt != "legacy")),
             }

@@ -20,6 +20,10 @@ two builds can have the same class count (Hubble B2 and B3 both have 4 materials
   The paper typesets α = 0.05 in bold and α = 0.01 in italics; here p < 0.01 is bold
   *and* italic (it also passes α = 0.05), and the stars make the level explicit in
   plain text. Fewer than 2 paired images: no test ("–").
+- The assumption beside the data: each metric has a column "ρ̂" with the observed Pearson
+  correlation of the row's paired scores and the marks the test gives at that ρ (which is
+  ``scipy.stats.ttest_rel``). Where those marks differ from the ones at the assumed ρ the
+  column carries a †, and a note under the table names the cell with both p-values.
 - mTC per lighting condition (Dir / Weak / Strong): mean mTC of the multispectral
   segmenter over the row's images under that condition (images without ground truth
   count too: mTC needs none).
@@ -36,7 +40,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from m2s2hil.analysis.metrics.significance import SENSITIVITY_RHOS, PairedTest, paired_t_test, rho_sensitivity
+from m2s2hil.analysis.metrics.significance import (
+    SENSITIVITY_RHOS,
+    AssumedVsObserved,
+    PairedTest,
+    assumed_and_observed,
+    rho_sensitivity,
+)
 from m2s2hil.catalog import load_catalog
 
 if TYPE_CHECKING:  # a type only (the driver's result)
@@ -55,7 +65,8 @@ class MetricCell:
     rgb: float
     multi: float
     n: int
-    test: PairedTest | None
+    test: PairedTest | None  # at the assumed ρ
+    observed: PairedTest | None = None  # the same pairs at their observed correlation
 
     @property
     def stars(self) -> str:
@@ -64,7 +75,29 @@ class MetricCell:
     @property
     def winner(self) -> str | None:
         """ "multi" or "rgb" when the difference is significant at α = 0.05, else None."""
-        if not self.stars or self.multi == self.rgb:
+        return self._winner(self.stars)
+
+    @property
+    def stars_observed(self) -> str:
+        return self.observed.stars if self.observed is not None else ""
+
+    @property
+    def winner_observed(self) -> str | None:
+        return self._winner(self.stars_observed)
+
+    @property
+    def rho_observed(self) -> float:
+        return self.observed.rho_observed if self.observed is not None else math.nan
+
+    @property
+    def agrees(self) -> bool:
+        """The marks at the assumed and at the observed ρ agree (True without a test)."""
+        if self.test is None or self.observed is None:
+            return True
+        return AssumedVsObserved(self.test, self.observed).agree
+
+    def _winner(self, stars: str) -> str | None:
+        if not stars or self.multi == self.rgb:
             return None
         return "multi" if self.multi > self.rgb else "rgb"
 
@@ -122,8 +155,9 @@ def build_rows(
                     a.append(float(va))
                     b.append(float(vb))
             if a:
-                test = paired_t_test(a, b, rho) if len(a) >= 2 else None
-                cells[metric] = MetricCell(float(np.mean(b)), float(np.mean(a)), len(a), test)
+                both = assumed_and_observed(a, b, rho) if len(a) >= 2 else None
+                cells[metric] = MetricCell(float(np.mean(b)), float(np.mean(a)), len(a),
+                                           both.assumed if both else None, both.observed if both else None)
         mtc: dict[str, tuple[float, int]] = {}
         for light in sorted({r["lighting"] for r in recs}, key=lambda x: (x not in LIGHTINGS, x)):
             vals = [
@@ -165,12 +199,38 @@ def _marked(value: float, cell: MetricCell, side: str) -> str:
     return f"**{text}**\\*"
 
 
+def _escaped(stars: str) -> str:
+    return stars.replace("*", "\\*") if stars else "–"
+
+
+def _observed(cell: MetricCell) -> str:
+    """The ρ̂ column: observed correlation, the marks at it, † when they differ from the assumed ρ's."""
+    if cell.observed is None:
+        return "–"
+    side = {"multi": " M", "rgb": " R"}.get(cell.winner_observed or "", "")
+    return f"{_f(cell.rho_observed, 2)} {_escaped(cell.stars_observed)}{side}" + ("" if cell.agrees else " †")
+
+
+def disagreement_notes(rows: Sequence[Table2Row]) -> list[str]:
+    """One note per cell whose marks at the observed ρ differ from those at the assumed ρ."""
+    out = []
+    for r in rows:
+        for m in METRICS:
+            cell = r.cells.get(m)
+            if cell is None or cell.agrees or cell.test is None or cell.observed is None:
+                continue
+            both = AssumedVsObserved(cell.test, cell.observed)
+            out.append(f"† {r.satellite_name} {r.build} {r.elevation} {METRIC_TITLES[m]}: the verdict "
+                       f"depends on ρ ({both.describe()}).")
+    return out
+
+
 def to_markdown(rows: Sequence[Table2Row], *, notes: Sequence[str] = ()) -> str:
     lights = [lt for lt in LIGHTINGS if any(lt in r.mtc for r in rows)]
     lights += sorted({lt for r in rows for lt in r.mtc} - set(lights))
     head = ["Satellite", "Build", "Classes", "Elevation", "Images"]
     for m in METRICS:
-        head += [f"{METRIC_TITLES[m]} RGB", f"{METRIC_TITLES[m]} Multi"]
+        head += [f"{METRIC_TITLES[m]} RGB", f"{METRIC_TITLES[m]} Multi", f"{METRIC_TITLES[m]} ρ̂"]
     head += [f"mTC {LIGHTING_TITLES.get(lt, lt)}" for lt in lights]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
@@ -178,14 +238,15 @@ def to_markdown(rows: Sequence[Table2Row], *, notes: Sequence[str] = ()) -> str:
         for m in METRICS:
             cell = r.cells.get(m)
             if cell is None:
-                cols += ["–", "–"]
+                cols += ["–", "–", "–"]
             else:
-                cols += [_marked(cell.rgb, cell, "rgb"), _marked(cell.multi, cell, "multi")]
+                cols += [_marked(cell.rgb, cell, "rgb"), _marked(cell.multi, cell, "multi"), _observed(cell)]
         cols += [_f(r.mtc[lt][0]) if lt in r.mtc else "–" for lt in lights]
         lines.append("| " + " | ".join(cols) + " |")
     out = "\n".join(lines) + "\n"
-    if notes:
-        out += "\n" + "\n".join(f"- {n}" for n in notes) + "\n"
+    all_notes = [*disagreement_notes(rows), *notes]
+    if all_notes:
+        out += "\n" + "\n".join(f"- {n}" for n in all_notes) + "\n"
     return out
 
 
@@ -213,6 +274,11 @@ def table_rows(rows: Sequence[Table2Row]) -> list[dict[str, Any]]:
                     f"{m}_p": t.p if t else "",
                     f"{m}_mark": cell.stars if cell else "",
                     f"{m}_better": (cell.winner or "") if cell else "",
+                    f"{m}_rho_observed": cell.rho_observed if cell else "",
+                    f"{m}_p_observed": cell.observed.p if cell and cell.observed else "",
+                    f"{m}_mark_observed": cell.stars_observed if cell else "",
+                    f"{m}_better_observed": (cell.winner_observed or "") if cell else "",
+                    f"{m}_marks_agree": cell.agrees if cell and cell.test else "",
                 }
             )
         for lt in LIGHTINGS:
@@ -354,7 +420,9 @@ def notes(result: EvaluationResult, rows: Sequence[Table2Row]) -> list[str]:
         f"Significance: paired t-test over the row's images with an assumed within-image correlation "
         f"ρ = {o.rho:g} (significance.md sweeps ρ). The better value is marked: **bold**\\* p < 0.05, "
         "***bold italic***\\*\\* p < 0.01 (the paper: bold α = 0.05, italic α = 0.01); '–' = fewer than "
-        "2 images.",
+        "2 images. Each metric's ρ̂ column gives the observed correlation of the row's paired scores and "
+        "the marks at it (M/R: multi/RGB better; the plain paired t-test), † where they differ from the "
+        "marks at the assumed ρ.",
     ]
     if o.mtc_for == "none":
         out.append("mTC was not computed (--mtc none).")

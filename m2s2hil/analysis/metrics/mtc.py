@@ -22,12 +22,30 @@ returning an ``(H, W)`` label map:
   binary maps, where ids cannot permute.
 - The paper's HIL predictor segments each of bands {5, 9, 10} (1-based) and fuses them
   in binary form (foreground vs background): ``band_fused_predictor``.
+
+**What a shift perturbs (issue 23).** A cyclic shift of an object that does not touch the
+border keeps the raster order of its pixels, so a segmenter that draws its fit sample by
+index with a fixed seed fits *the same pixels* after every shift, and one whose foreground
+pool is below its sample size fits all of them in a new order: mTC = 1.000 then measures
+order invariance, not stability. ``ResampledFit`` wraps a sampling segmenter (one with
+``sample_size`` and ``seed``, e.g. ``SpectralSegmenter``) so that each prediction fits a
+different sample: at most ``fraction`` (default 1/4) of the foreground's pixels, drawn with
+the segmenter's seed + k for the k-th perturbation (k = 0 for ŷ). mTC then asks whether
+another draw of the object's pixels gives the same map. Where the segmenter's own fit pool
+(e.g. its homogeneous pixels) is smaller than that cap, it fits the whole pool and only the
+mixture's initialisation (its seed) changes. Any predictor may offer ``perturbed(k)`` to get
+the same treatment; plain callables are called unchanged. A pixel-wise predictor (a
+threshold per pixel, the one-band path of the binary setting) has nothing to resample and
+still scores exactly 1.0.
 """
 
 from __future__ import annotations
 
+import copy
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -36,10 +54,13 @@ from m2s2hil.analysis.bands import PAPER_BANDS
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.metrics.scores import micro_iou
 from m2s2hil.analysis.segmenters.compositing import align_labels, binary_fusion, majority_vote
+from m2s2hil.analysis.segmenters.spectral import foreground_mask
 
 DEFAULT_K = 8
 DEFAULT_MAX_SHIFT = 3
 DEFAULT_SEED = 42
+DEFAULT_FIT_FRACTION = 0.25  # ResampledFit: the fit sample's share of the foreground
+MIN_FIT_SAMPLE = 200  # ... but never fewer pixels than this (a 12-component mixture needs data)
 
 Shift = tuple[int, int]  # (dx, dy)
 Predictor = Callable[[np.ndarray], np.ndarray]
@@ -111,10 +132,12 @@ def mtc(
     if not used:
         raise AnalysisInputError("shifts", "need at least one shift")
     exclude = () if ignore_label is None else (ignore_label,)
-    base = _predict(predict, arr, shape, "base")
+    perturbed = getattr(predict, "perturbed", None)  # ResampledFit: a new fit sample per perturbation
+    base = _predict(perturbed(0) if perturbed else predict, arr, shape, "base")
     ious = []
-    for dx, dy in used:
-        warped = _predict(predict, translate(arr, dx, dy), shape, f"shift {dx},{dy}")
+    for k, (dx, dy) in enumerate(used, start=1):
+        f = perturbed(k) if perturbed else predict
+        warped = _predict(f, translate(arr, dx, dy), shape, f"shift {dx},{dy}")
         back = untranslate(warped, dx, dy)
         if align:
             back = align_labels(base, back)
@@ -145,3 +168,52 @@ def band_fused_predictor(
         return binary_fusion(maps) if binary else majority_vote(maps)
 
     return predict
+
+
+class ResampledFit:
+    """A sampling segmenter whose fit sample changes with the perturbation (module docstring).
+
+    ``perturbed(k)`` is the segmenter with ``seed + k`` and a sample of at most
+    ``max(min_sample, fraction × foreground pixels)`` (never more than its own
+    ``sample_size``); calling the object itself is ``perturbed(0)``. The foreground is counted
+    with ``spectral.foreground_mask`` under the segmenter's own ``foreground`` rule.
+    """
+
+    def __init__(self, segmenter: Any, fraction: float = DEFAULT_FIT_FRACTION,
+                 min_sample: int = MIN_FIT_SAMPLE) -> None:
+        for attr in ("segment", "sample_size", "seed"):
+            if not hasattr(segmenter, attr):
+                raise AnalysisInputError(
+                    "segmenter", f"{type(segmenter).__name__} has no {attr!r}: ResampledFit needs a "
+                    "segmenter that draws a seeded fit sample (sample_size, seed), e.g. SpectralSegmenter")
+        if not 0.0 < fraction <= 1.0:
+            raise AnalysisInputError("fraction", f"must lie in (0, 1], got {fraction!r}")
+        if min_sample < 2:
+            raise AnalysisInputError("min_sample", f"must be ≥ 2, got {min_sample!r}")
+        self.segmenter = segmenter
+        self.fraction = float(fraction)
+        self.min_sample = int(min_sample)
+        self.name = f"{getattr(segmenter, 'name', type(segmenter).__name__)} (resampled fit)"
+
+    def sample_size(self, cube: np.ndarray) -> int:
+        """The fit sample's size for ``cube``."""
+        arr = np.asarray(cube, dtype=np.float64)
+        if arr.ndim == 2:
+            arr = arr[np.newaxis]
+        fg, _ = foreground_mask(arr, getattr(self.segmenter, "foreground", "otsu"))
+        cap = max(self.min_sample, math.ceil(self.fraction * int(fg.sum())))
+        return int(min(int(self.segmenter.sample_size), cap))
+
+    def perturbed(self, k: int) -> Predictor:
+        def predict(cube: np.ndarray) -> np.ndarray:
+            seg = copy.copy(self.segmenter)
+            seg.seed = int(self.segmenter.seed) + int(k)
+            seg.sample_size = self.sample_size(cube)
+            return seg.segment(cube)
+
+        return predict
+
+    def __call__(self, cube: np.ndarray) -> np.ndarray:
+        return self.perturbed(0)(cube)
+
+    segment = __call__

@@ -35,6 +35,7 @@ from m2s2hil.analysis.evaluation.jobs import FrameJob, session_jobs
 from m2s2hil.analysis.evaluation.loading import load_cube
 from m2s2hil.analysis.qc import FLAGS, QcConfig, capture_stability, qc_of_meta, qc_summary
 from m2s2hil.analysis.report.charts import qc_histogram_png
+from m2s2hil.analysis.report.coverage import coverage_section
 from m2s2hil.atomic import write_text_atomic
 from m2s2hil.catalog import load_catalog
 from m2s2hil.processing.display import false_colour
@@ -246,7 +247,9 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
 
     lights = _order([v.lighting for v in views], list(cat.lighting))
     elevs = _order([v.elevation for v in views], list(cat.elevations))
-    out.append("<h2>QC per pose</h2>")
+    out.append("<h2>Coverage</h2>")
+    out.append(coverage_section(store))  # the map (m2s2hil/analysis/report/coverage.py); the table below
+    out.append("<details><summary>QC per pose (table)</summary>")
     for lt in lights:
         vs = [v for v in views if v.lighting == lt]
         azs = sorted({v.azimuth_deg for v in vs if v.azimuth_deg is not None})
@@ -269,6 +272,7 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
             if any(c != "<td></td>" for c in cells):
                 out.append(f"<tr><th>{_esc(el)}</th>{''.join(cells)}</tr>")
         out.append("</table>")
+    out.append("</details>")
 
     out.append("<h2>Contact sheet</h2>")
     for lt in lights:
@@ -293,7 +297,7 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
                 flags = f"<br><span class=flags>{_esc(', '.join(v.flags))}</span>" if v.flags else ""
                 star = "†" if v.computed else ""
                 out.append(
-                    f"<figure class={cls} title='{_esc(v.event_id)}'>{img}<figcaption>{az}{extra} · "
+                    f"<figure class={cls} id='frame-{_esc(v.event_id)}' title='{_esc(v.event_id)}'>{img}<figcaption>{az}{extra} · "
                     f"QC {_score_text(v.score)}{star}{flags}</figcaption></figure>"
                 )
             out.append("</div>")

@@ -8,6 +8,12 @@ noise-free signal, as an auto-exposure would), takes two lens-capped frames as t
 and extracts the super-pixel cube with ``processing.FrameProcessor`` — the engine's own path.
 The label map is reduced to the cube grid by ``loading.labels_to_cube``.
 
+Conditions for the robustness benchmark (``benchmarks/bench_robustness.py``): ``peak_fraction``
+(0.02–2: above 1 the brightest band clips), ``spot_angle_deg`` (the spotlight's incidence),
+``temperature_c`` (dark current), ``read_noise_e`` (sensor noise) and ``fill`` (the mockup's
+bounding radius as a fraction of the frame side); None keeps the rig's value. Each frame also
+carries the processor's ``saturated`` mask (True where a band clipped).
+
 ``visible_materials(gt)``: materials covering at least ``VISIBLE_FRACTION`` of the object and
 ``VISIBLE_PIXELS`` pixels of the cube — a material hidden behind the body, or a few pixels at the
 rim, cannot be found by anything looking at the image and is not counted.
@@ -16,10 +22,11 @@ rim, cannot be found by anything looking at the image and is not counted.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.evaluation.loading import labels_to_cube
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import load_rig
@@ -47,6 +54,7 @@ class SimFrame:
     gt: np.ndarray  # int (h, w) class ids: 0 background, i = materials[i - 1]
     materials: tuple[str, ...]
     exposure_s: float
+    saturated: np.ndarray | None = None  # bool (h, w): a band clipped (processing's saturated_mask)
 
     @property
     def name(self) -> str:
@@ -72,18 +80,34 @@ def simulated_frames(
     size: int = 512,
     seed: int = 0,
     skip: Sequence[str] = (),
+    peak_fraction: float = PEAK_FRACTION,
+    spot_angle_deg: float | None = None,
+    temperature_c: float | None = None,
+    read_noise_e: float | None = None,
+    fill: float | None = None,
 ) -> Iterator[SimFrame]:
     """One frame per satellite × build × lighting × elevation × azimuth on a ``size``² sensor;
-    frames whose ``name`` is in ``skip`` are not rendered (a cache has them)."""
+    frames whose ``name`` is in ``skip`` are not rendered (a cache has them). The condition
+    keywords are described in the module docstring."""
+    if not 0 < peak_fraction <= 10:
+        raise AnalysisInputError("peak_fraction", f"must lie in (0, 10], got {peak_fraction}")
+    if fill is not None and not 0 < fill < 1:
+        raise AnalysisInputError("fill", f"must lie in (0, 1), got {fill}")
     cfg = load_rig(None)
+    if read_noise_e is not None:
+        sensor = cfg.simulation.sensor.model_copy(update={"read_noise_e": float(read_noise_e)})
+        cfg = cfg.model_copy(update={"simulation": cfg.simulation.model_copy(update={"sensor": sensor})})
     cat = load_catalog()
     model = cfg.camera.model.model_copy(update={"width": int(size), "height": int(size)})
     clock = VirtualClock()
-    world = build_world(cfg, clock)  # the simulated rig's own world and frame source
+    # the simulated rig's own world and frame source
+    world = build_world(cfg, clock, spot_angle_deg=spot_angle_deg, sensor_temperature_c=temperature_c)
     pose = {"az": 0.0, "tilt": 0.0}
     world.attach_axis("turntable", lambda: pose["az"])
     world.attach_axis("tilt", lambda: pose["tilt"])
     src = build_frame_source(cfg, world, seed=seed, model=model)
+    if fill is not None:
+        src.scene.params = replace(src.scene.params, fill=float(fill))
     full = float(model.full_scale)
     skipped = set(skip)
     for light in lightings:
@@ -107,7 +131,7 @@ def simulated_frames(
                         src.capture(0.005)
                         truth = src.truth()
                         peak = float(np.percentile(truth.signal()[truth.labels > 0], 99.5))
-                        exposure = min(2.0, 0.005 * PEAK_FRACTION * full / max(peak, 1e-6))
+                        exposure = min(2.0, 0.005 * peak_fraction * full / max(peak, 1e-6))
                         raw = src.capture(exposure)
                         labels = np.array(src.truth().labels, copy=True)
                         world.set_lens_cap(True)
@@ -115,7 +139,9 @@ def simulated_frames(
                         world.set_lens_cap(False)
                         dark = build_master_dark(darks, exposure_s=exposure, gain=1.0,
                                                  temperature_c=world.sensor_temperature_c)
-                        cube = FrameProcessor("superpixel", model, dark=dark).process(raw).cube
-                        cube = np.array(cube, dtype=np.float32, copy=True)
+                        done = FrameProcessor("superpixel", model, dark=dark).process(raw)
+                        cube = np.array(done.cube, dtype=np.float32, copy=True)
+                        sat_mask = np.array(done.saturated_mask, dtype=bool, copy=True)
                         gt = labels_to_cube(labels, cube.shape[1:])
-                        yield SimFrame(sat, build, light, elev, float(az), cube, gt, materials, exposure)
+                        yield SimFrame(sat, build, light, elev, float(az), cube, gt, materials, exposure,
+                                       sat_mask)

@@ -21,7 +21,7 @@ import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response
 
-from m2s2hil.rig.live_view import LiveFrame
+from m2s2hil.rig.live_view import LiveFrame, LiveNotice
 
 from ..common import CROSS_SITE
 from ..streams import BUSY, ConnectionStream, streams_of
@@ -42,6 +42,12 @@ def _notice_jpeg(text: str) -> bytes:
     return buf.tobytes() if ok else b""
 
 
+def _notice_part(state: str, reason: str, extra: dict[str, str] | None = None) -> bytes:
+    """A part without a frame: the reason drawn as a JPEG, and in its headers (JSON, ASCII)."""
+    return _part(_notice_jpeg(reason), {"X-Live-Status": json.dumps({"state": state, "reason": reason}),
+                                        "X-Live-Error": json.dumps(reason), **(extra or {})})
+
+
 def _part(jpeg: bytes, headers: dict[str, str]) -> bytes:
     head = "".join(f"{k}: {v}\r\n" for k, v in headers.items())
     return (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n{head}\r\n"
@@ -58,23 +64,34 @@ async def live_stream(
     max_frames: Annotated[int | None, Query(ge=1, le=1_000_000,
                                             description="End after this many frames.")] = None,
 ) -> Response:
-    """The live view: the newest frame whenever the viewer is ready for one. While a session owns
-    the rig the stream carries a notice frame (``X-Live-Error``) instead, about four a second.
-    A viewer counts while its connection lasts; beyond the daemon's limit, 503 with Retry-After."""
+    """The live view: the newest frame whenever the viewer is ready for one. Instead of a frame, a
+    notice part (a JPEG of the text, ``X-Live-Status``: ``{"state", "reason"}``, and the reason
+    alone as ``X-Live-Error``): ``busy`` while a session owns the rig and ``error`` on a device
+    error (about four a second, retried), ``waiting`` every 2 s without a frame (a cold start:
+    the stream waits for the camera, it does not time out). The stream's last part says why it
+    ended (``X-Live-End``: ``{"reason", "frames"}``). A viewer counts while its connection lasts;
+    beyond the daemon's limit, 503 with Retry-After."""
     streams = streams_of(request)
     if not streams.live.acquire():
         return streams.busy(streams.live)
 
     async def parts() -> AsyncIterator[bytes]:
         frames = console.live.aframes(max_frames=max_frames)
+        sent = 0
         try:
             async for item in frames:
-                if isinstance(item, str):
-                    yield _part(_notice_jpeg(item), {"X-Live-Error": json.dumps(item)})
+                if isinstance(item, LiveNotice):
+                    yield _notice_part(item.state, item.reason)
                 else:
+                    sent += 1
                     yield _frame_part(item)
         finally:
             await frames.aclose()  # the viewer leaves the count now, not when collected
+        if max_frames is not None and sent >= max_frames:
+            reason = f"max_frames: the {sent} frame(s) asked for were sent"
+        else:
+            reason = console.live.stopped_reason or "the live view stopped"
+        yield _notice_part("ended", reason, {"X-Live-End": json.dumps({"reason": reason, "frames": sent})})
 
     return ConnectionStream(parts(), streams.live, send_timeout_s=streams.limits.send_timeout_s,
                             media_type=f"multipart/x-mixed-replace; boundary={BOUNDARY}",
@@ -101,7 +118,14 @@ def _live_out(console: ConsoleDep) -> dict:
     return {"settings": {"exposure_s": s.exposure_s, "gain": s.gain, "view": s.view, "axis_x": s.axis_x},
             "viewers": console.live.viewers, "frames_produced": console.live.frames_produced,
             "error": console.live.error, "stats": snap.stats if snap is not None else None,
+            "state": console.live.state, "stopped_reason": console.live.stopped_reason,
+            "stream_fps": console.camera.stream_fps(s), "fps": _round(console.live.fps, 2),
+            "cold_start_s": _round(console.live.cold_start_s, 3),
             "bands_nm": list(console.manager.rig.config.camera.model.bands_nm)}
+
+
+def _round(x: float | None, nd: int) -> float | None:
+    return None if x is None else round(x, nd)
 
 
 @router.get("/camera/live", response_model=cm.LiveOut)

@@ -4,19 +4,24 @@ origin (as the axis's policy says), lamps by preset or one by one.
 The rig has one owner: while a session runs (or is paused, or starting) every command here is
 refused with 409 and the reason; ``GET /rig/axes`` says who owns the rig. A move is commanded
 and answered at once (202) with the axis's read-back; the console polls ``GET /rig/axes`` to
-follow it. The emergency stop (``POST /rig/stop``) works whatever runs.
+follow it. A jog starts from the target of the manual move still in force (not from the
+read-back while a move runs), so jogs sent together add up (:mod:`m2s2hil.daemon.move_targets`).
+The emergency stop (``POST /rig/stop``) works whatever runs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator
 from typing import Literal
 
 from fastapi import APIRouter, HTTPException, Path
 
 from m2s2hil.daemon.errors import Conflict
+from m2s2hil.daemon.move_targets import MoveTargets
 from m2s2hil.errors import UsageError
-from m2s2hil.rig.manual import ManualControl
+from m2s2hil.rig.manual import ManualCommandError, ManualControl
 from m2s2hil.rig.opened import Rig
 
 from ..common import CONFLICT, CROSS_SITE, MARKED, Manager
@@ -78,6 +83,19 @@ def get_axes(mg: Manager) -> dict:
             "presets": {k: list(v) for k, v in cfg.lighting.items()}}
 
 
+@contextlib.contextmanager
+def _forget_on_error(targets: MoveTargets, role: AxisName) -> Iterator[None]:
+    """A move the device refused (or a request that failed half-way) may leave the axis anywhere:
+    the next jog starts from the read-back. A move refused before sending (422) changes nothing."""
+    try:
+        yield
+    except ManualCommandError:
+        raise
+    except Exception:
+        targets.forget(role)
+        raise
+
+
 def _moved(rig: Rig, role: AxisName, target: float) -> dict:
     """The answer to a move just commanded: its target and the axis's read-back (same lock)."""
     ax = rig.axis(role)
@@ -88,9 +106,14 @@ def _moved(rig: Rig, role: AxisName, target: float) -> dict:
 @router.post("/rig/axes/{axis}/jog", status_code=202, response_model=cm.MoveOut,
              responses={**CONFLICT, **CROSS_SITE})
 def jog(mg: Manager, body: cm.Jog, axis: AxisName = AxisPath) -> dict:
-    """Move by ``delta_deg`` from the axis's read-back position (refused beyond the soft limits)."""
-    with mg.guard.manual_access() as rig, device_errors(f"jogging the {axis}"):
-        target = ManualControl(rig).jog(axis, body.delta_deg)
+    """Move by ``delta_deg`` from the target of the manual move still in force, else from the
+    read-back (refused beyond the soft limits): jogs sent together end at their sum."""
+    targets = mg.guard.targets
+    with (mg.guard.manual_access() as rig, _forget_on_error(targets, axis),
+          device_errors(f"jogging the {axis}")):
+        base = targets.base(axis, rig.axis(axis).position)
+        target = ManualControl(rig).go_to(axis, base + body.delta_deg)
+        targets.commanded(axis, target)
         moved = _moved(rig, axis, target)
     log.info("manual: %s jog %+.3f° → %.3f°", axis, body.delta_deg, target)
     return moved
@@ -100,8 +123,11 @@ def jog(mg: Manager, body: cm.Jog, axis: AxisName = AxisPath) -> dict:
              responses={**CONFLICT, **CROSS_SITE})
 def go_to(mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
     """Move to ``position_deg`` (refused beyond the soft limits)."""
-    with mg.guard.manual_access() as rig, device_errors(f"moving the {axis}"):
+    targets = mg.guard.targets
+    with (mg.guard.manual_access() as rig, _forget_on_error(targets, axis),
+          device_errors(f"moving the {axis}")):
         target = ManualControl(rig).go_to(axis, body.position_deg)
+        targets.commanded(axis, target)
         moved = _moved(rig, axis, target)
     log.info("manual: %s go to %.3f°", axis, target)
     return moved
@@ -112,6 +138,7 @@ def go_to(mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
 def stop_axis(mg: Manager, axis: AxisName = AxisPath) -> dict:
     """Stop this axis (use ``POST /rig/stop`` to stop everything and switch the lamps off)."""
     with mg.guard.manual_access() as rig, device_errors(f"stopping the {axis}"):
+        mg.guard.targets.forget(axis)  # it stops short of its target
         ManualControl(rig).stop(axis)
         pos = float(rig.axis(axis).position())
     return {"axis": axis, "target_deg": pos, "position_deg": pos, "moving": False}
@@ -125,6 +152,7 @@ def home_axis(mg: Manager, console: ConsoleDep, axis: AxisName = AxisPath) -> di
         raise Conflict(f"{axis} has no homing switches in the rig file (homing = "
                        f"{mg.rig.config.axes[axis].homing!r}): set its origin instead")
     with mg.guard.manual_access("homing") as rig, device_errors(f"homing the {axis}"):
+        mg.guard.targets.forget()  # homing moves the controller's axes and redefines 0
         ManualControl(rig).home(axis)
         pos = float(rig.axis(axis).position())
     log.info("manual: %s homed", axis)
@@ -139,6 +167,7 @@ def set_origin(mg: Manager, axis: AxisName = AxisPath) -> dict:
     from m2s2hil.rig.origin import set_origin_open
 
     with mg.guard.manual_access("setting the origin") as rig, device_errors(f"setting the {axis} origin"):
+        mg.guard.targets.forget(axis)  # 0 is redefined
         try:
             set_origin_open(rig, axis)
         except RigOpenError as exc:

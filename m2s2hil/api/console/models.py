@@ -84,6 +84,13 @@ class LiveOut(BaseModel):
     error: str | None
     stats: dict[str, Any] | None
     bands_nm: list[float]
+    state: Literal["idle", "starting", "streaming", "busy", "error"] = Field(
+        description="idle: no stream; starting: waiting for the camera's first frame; streaming; "
+                    "busy: a session owns the rig; error: a device error (retried)")
+    stopped_reason: str | None = Field(description="Why the stream last stopped (None before it ever did).")
+    stream_fps: float = Field(description="The frame rate the stream asks of the camera at these settings.")
+    fps: float | None = Field(description="Frames per second the daemon produced over the last frames.")
+    cold_start_s: float | None = Field(description="From the stream's last start to its first frame.")
 
 
 class SnapshotIn(_In):
@@ -126,5 +133,6 @@ class EstimateOut(BaseModel):
     darks: int
     estimate_s: float
     lower_bound_s: float
+    physical_floor_s: float = Field(description="The least rig time of any mode and order (plan.floor).")
     bytes: int
     breakdown: dict[str, float]

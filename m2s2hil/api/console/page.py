@@ -55,7 +55,8 @@ def console_page() -> Response:
 
 
 @open_router.get("/console/{name}", response_class=Response,
-                 responses={200: {"content": {t.split(";")[0]: {} for t in ASSETS.values()}}})
+                 responses={200: {"content": {t.split(";")[0]: {} for t in ASSETS.values()}},
+                            404: {"description": "No console asset of that name"}})
 def console_asset(name: str) -> Response:
     """The console's scripts and style sheet."""
     if name not in ASSETS:
@@ -77,6 +78,7 @@ def estimate_plan(mg: Manager, sweep: Sweep = Body(...)) -> dict:
     frames = sum(1 for e in events if e.kind == "frame")
     return {"events": len(events), "frames": frames, "darks": len(events) - frames,
             "estimate_s": est.total_s, "lower_bound_s": est.lower_bound_s,
+            "physical_floor_s": sweep.physical_floor(cfg).total_s,
             "bytes": estimate_bytes(sweep, cfg, frames), "breakdown": est.breakdown}
 
 

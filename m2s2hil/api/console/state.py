@@ -50,12 +50,16 @@ class LiveCamera:
                     rig.camera.configure(exposure_s=settings.exposure_s, gain=settings.gain)
                     self.applied = wanted
                 if not self.streaming:
-                    fps = min(self.STREAM_FPS, rig.config.camera.model.max_fps, 1.0 / settings.exposure_s)
-                    rig.camera.start_stream(fps=fps)
+                    rig.camera.start_stream(fps=self.stream_fps(settings))
                     self.streaming = True
                 return rig.camera.read_frame(timeout=settings.exposure_s + rig.config.camera.timeout_s)
         except Conflict as exc:
             raise LiveViewBusy(str(exc)) from None
+
+    def stream_fps(self, settings: LiveSettings) -> float:
+        """The rate asked of the camera: :attr:`STREAM_FPS`, or less when the camera or the
+        exposure cannot go so fast."""
+        return min(self.STREAM_FPS, self.mg.rig.config.camera.model.max_fps, 1.0 / settings.exposure_s)
 
     def release(self, rig: Rig) -> None:
         """Stop streaming (the caller holds the device lock) so the camera can be used otherwise."""

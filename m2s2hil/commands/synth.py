@@ -1,0 +1,52 @@
+"""``m2s2hil synth --sat hubble --build B2``: the paper's synthetic domain as a session of its own kind.
+
+Renders, for every pose of the sweep (the rig's elevations plus the synthetic-only E3, every
+azimuth of the grid), one RGB image, ten band images lit with ``wavelength_to_rgb(centre,
+gamma=0.80)`` and the material mask (m2s2hil.twin.synth), and stores them as a synthetic
+session under the data root; ``m2s2hil export`` writes it in the published layout beside the
+HIL sessions of the same build. The band colours and the filaments' RGB colours come from
+``analysis.segmenters.rgb`` here, so the twin needs no analysis import.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def synth_cmd(
+    sat: str = typer.Option(..., "--sat", help="satellite: voyager, iss, hubble"),
+    build: str = typer.Option(..., "--build", help="build: B1, B2, B3"),
+    light: str = typer.Option("strong", "--light", help="the preset whose lamps light the renders"),
+    tilts: str = typer.Option("", "--tilts", help="elevations, comma-separated (default: E0,E1,E2 and E3)"),
+    step: float = typer.Option(10.0, "--step", help="azimuth step, degrees (the paper: 10)"),
+    size: int = typer.Option(512, "--size", help="image side, pixels (512: a superpixel HIL cube's)"),
+    rig: Path | None = typer.Option(None, "--rig", help="rig TOML (default: built-in simulated rig)"),
+    root: Path | None = typer.Option(None, "--root", help="data root (default: $M2S2HIL_DATA or ./sessions)"),
+    session_id: str | None = typer.Option(None, "--session-id", help="session id (default: generated)"),
+) -> None:
+    """Render the synthetic domain of one build (RGB, ten band renders and masks per pose)."""
+    from m2s2hil.analysis.segmenters.rgb import band_colours, camera_weights
+    from m2s2hil.config import load_rig
+    from m2s2hil.errors import UsageError
+    from m2s2hil.store.catalogue import default_data_root
+    from m2s2hil.twin.synth import GAMMA, SynthPlan, synthesise
+
+    if not 0.01 <= step <= 360:
+        raise UsageError(f"--step {step} must lie in 0.01 … 360 degrees")
+    cfg = load_rig(rig)
+    model = cfg.camera.model
+    plan = SynthPlan(satellite=sat, build=build, light=light, azimuth_step_deg=step, size=size,
+                     elevations=tuple(t for t in tilts.replace(" ", "").split(",") if t))
+    lights = band_colours(model.bands_nm, gamma=GAMMA)
+    weights = camera_weights(model.bands_nm)
+
+    def progress(done: int, total: int) -> None:
+        if done == total or done % 36 == 0:
+            typer.echo(f"  {done}/{total} views", err=True)
+
+    res = synthesise(root or default_data_root(), cfg, plan, lights, weights, session_id=session_id,
+                     progress=progress)
+    typer.echo(f"rendered {res.views} synthetic views of {sat} {build} into {res.path} "
+               f"({res.views_per_s:.1f} views/s)")

@@ -1,0 +1,184 @@
+"""The twin's camera: the simulator's mockup meshes projected at a frame's recorded pose, for
+a placement of the mockup on the rig, at low resolution.
+
+A :class:`Placement` is what registration estimates (``m2s2hil.twin.registration``): the
+mockup's centre off the turntable axis (mm, in the turntable's frame at azimuth 0: x to the
+camera's right, y away from it), its yaw at azimuth 0, the tilt stage's bias, and a scale
+(the camera's distance and the lens, as a factor on the simulator's nominal fill). It is the
+same model the simulated rig perturbs (``simulators.world.Placement``), so a placement the
+rig file sets is the one registration should find.
+
+:class:`TwinCamera` renders, at ``size`` px on the long side: the mockup's fractional
+silhouette (supersampled, so that it moves smoothly with the parameters, which the
+optimiser needs), its label map, and its shaded view under given lamps (the scene renderer
+itself, for the photometric checks). Observed frames come in as processed cubes;
+:func:`observed_mask` is the one foreground rule (a spectrum's distance from the
+backdrop's).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from functools import cached_property
+from typing import Any
+
+import cv2
+import numpy as np
+from m2s2hil.simulators.raster import rasterize
+from m2s2hil.simulators.scene import MountedScene, Scene, SceneParams, Shaded
+
+from m2s2hil.catalog import load_catalog
+
+#: The bench's mockup size (bounding-sphere diameter, mm): the simulated rig's default too
+#: (``[simulation.mount] diameter_mm``). An assumption: the printed mockups are about 16 cm.
+DIAMETER_MM = 160.0
+
+
+@dataclass(frozen=True)
+class Placement:
+    """How the mockup sits: offset (mm), yaw and tilt bias (°), scale (1: nominal)."""
+
+    dx_mm: float = 0.0
+    dy_mm: float = 0.0
+    yaw_deg: float = 0.0
+    tilt_bias_deg: float = 0.0
+    scale: float = 1.0
+
+    @classmethod
+    def from_vector(cls, v: Sequence[float]) -> Placement:
+        return cls(*(float(x) for x in v))
+
+    def vector(self) -> np.ndarray:
+        return np.array([self.dx_mm, self.dy_mm, self.yaw_deg, self.tilt_bias_deg, self.scale])
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: round(float(v), 4) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Placement:
+        return cls(**{k: float(d[k]) for k in ("dx_mm", "dy_mm", "yaw_deg", "tilt_bias_deg", "scale") if k in d})
+
+
+NOMINAL = Placement()
+
+
+def observed_mask(cube: np.ndarray, *, contrast: float = 0.12) -> np.ndarray:
+    """(H, W) bool foreground of a processed cube ``(bands, H, W)``: pixels whose spectrum
+    differs from the backdrop's by more than ``contrast`` of its norm (or than its noise).
+    The backdrop is
+    uniform on the bench (a diffuse sheet, ``simulators.shading``), so its spectrum is the
+    median of the frame's top, left and right borders (the stand leaves at the bottom). Dark
+    filaments and shadows are darker than the backdrop, so they count, which Otsu on
+    brightness alone misses."""
+    arr = np.asarray(cube, dtype=np.float32)
+    border = np.concatenate([arr[:, 0, :], arr[:, 1:, 0], arr[:, 1:, -1]], axis=1)
+    bg = np.median(border, axis=1)
+    # The backdrop's noise per band (MAD): a dim backdrop's distance is mostly noise, whose
+    # norm over 10 bands is about sqrt(Σσ²) ± 0.7σ; 1.7·sqrt(Σσ²) keeps false pixels rare.
+    sigma = 1.4826 * np.median(np.abs(border - bg[:, None]), axis=1)
+    threshold = max(contrast * float(np.linalg.norm(bg)), 1.7 * float(np.linalg.norm(sigma)))
+    if not threshold > 0:
+        return np.zeros(arr.shape[1:], dtype=bool)
+    diff = arr - bg[:, None, None]
+    dist = np.sqrt(np.einsum("bhw,bhw->hw", diff, diff))
+    mask = (dist > threshold).astype(np.uint8)
+    # Sensor noise and hot pixels leave isolated specks: drop components of under 3 px (an
+    # opening would also erase the struts one pixel wide).
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    keep = np.zeros(n, dtype=bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= 3
+    return keep[lab]
+
+
+def coverage_of(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A boolean mask area-averaged to ``shape`` (H, W): fractional coverage, float32."""
+    m = np.asarray(mask, dtype=np.float32)
+    if m.shape == shape:
+        return m
+    return cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+
+
+class TwinCamera:
+    """The twin's view of the rig for a camera ``model`` (bands, layout, aspect) at ``size`` px."""
+
+    def __init__(self, model: Any, size: int = 96, *, diameter_mm: float = DIAMETER_MM,
+                 supersample: int = 2, fill: float | None = None) -> None:
+        w, h = int(model.width), int(model.height)
+        self.width = int(size) if w >= h else max(8, round(size * w / h))
+        self.height = int(size) if h >= w else max(8, round(size * h / w))
+        self.model = model
+        self.diameter_mm = float(diameter_mm)
+        self.supersample = int(supersample)
+        params = SceneParams(threads=1) if fill is None else SceneParams(fill=fill, threads=1)
+        self.scene = Scene(self.width, self.height, model.bands_nm, model.fwhm_nm, model.layout, params)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height, self.width
+
+    def mounted(self, satellite: str, build: str) -> MountedScene:
+        b = load_catalog().build(satellite, build)
+        return self.scene.mount(b.satellite, b.materials, b.key)
+
+    def px_per_mm(self) -> float:
+        """Frame pixels (at this camera's size) per millimetre at nominal scale."""
+        return 2.0 * self.scene.params.fill * min(self.width, self.height) / self.diameter_mm
+
+    def _offset(self, mounted: MountedScene, p: Placement) -> np.ndarray:
+        # As simulators.world.Placement.offset_units: the offset in the object frame, yaw undone.
+        k = 2.0 * mounted.radius / self.diameter_mm
+        c, s = math.cos(math.radians(p.yaw_deg)), math.sin(math.radians(p.yaw_deg))
+        x, y = p.dx_mm * k, p.dy_mm * k
+        return np.array([c * x + s * y, -s * x + c * y, 0.0])
+
+    def _screen(self, mounted: MountedScene, az: float, tilt: float, p: Placement, ss: int) -> np.ndarray:
+        rot = Scene.rotation(az + p.yaw_deg, tilt + p.tilt_bias_deg)
+        s = self.scene.scale(mounted) * p.scale * ss
+        cam = (mounted.vertices + self._offset(mounted, p)) @ rot.T
+        cx, cy = self.width * ss / 2.0, self.height * ss / 2.0
+        return np.column_stack([cx + s * cam[:, 0], cy - s * cam[:, 1], cam[:, 2]])
+
+    def coverage(self, mounted: MountedScene, az: float, tilt: float, p: Placement = NOMINAL) -> np.ndarray:
+        """(H, W) float32 fractional silhouette of the mockup and its stand."""
+        ss = self.supersample
+        scr = self._screen(mounted, az, tilt, p, ss)
+        depth, _, _ = rasterize(scr, None, mounted.triangles, mounted.tri_label, self.height * ss,
+                                self.width * ss, 1)
+        cov = np.isfinite(depth).astype(np.float32)
+        if ss == 1:
+            return cov
+        return cov.reshape(self.height, ss, self.width, ss).mean(axis=(1, 3))
+
+    def labels(self, mounted: MountedScene, az: float, tilt: float, p: Placement = NOMINAL,
+               shape: tuple[int, int] | None = None) -> np.ndarray:
+        """(H, W) uint8 label map (index into ``mounted.class_names``), at ``shape`` if given."""
+        h, w = shape or self.shape
+        rot = Scene.rotation(az + p.yaw_deg, tilt + p.tilt_bias_deg)
+        s = self.scene.params.fill * min(w, h) / mounted.radius * p.scale
+        cam = (mounted.vertices + self._offset(mounted, p)) @ rot.T
+        scr = np.column_stack([w / 2.0 + s * cam[:, 0], h / 2.0 - s * cam[:, 1], cam[:, 2]])
+        _, _, label = rasterize(scr, mounted.normals @ rot.T, mounted.triangles, mounted.tri_label, h, w, 1)
+        assert label is not None
+        return label
+
+    def shaded(self, mounted: MountedScene, az: float, tilt: float, p: Placement,
+               lamp_output: Mapping[int, float], lamp_info: Mapping[int, Any], spot_angle_deg: float,
+               band_gain: np.ndarray | None = None) -> Shaded:
+        """The scene renderer's view (labels, shading) at this placement; scale is ignored
+        (the photometric checks compare ratios inside the silhouette)."""
+        off = self._offset(mounted, p)
+        return self.scene.render(mounted.satellite, mounted.materials, az + p.yaw_deg, tilt + p.tilt_bias_deg,
+                                 lamp_output, lamp_info, spot_angle_deg, band_gain=band_gain, offset=off,
+                                 build=mounted.build)
+
+    @cached_property
+    def sensor_band_gain(self) -> np.ndarray:
+        """Electrons/s per unit radiance per band of the simulator's default sensor: the
+        twin's photometric model of the camera (a real rig would calibrate it)."""
+        from m2s2hil.simulators.sensor import Sensor
+
+        m = self.model
+        sensor = Sensor(8, 8, m.layout, m.bands_nm, m.fwhm_nm, int(m.full_scale))
+        return np.asarray(sensor.band_gain, dtype=np.float64)

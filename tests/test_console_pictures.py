@@ -1,0 +1,248 @@
+"""The console's pictures (m2s2hil/api/console/pictures.py, m2s2hil/console/pictures.js): the
+spectrum at a point or region of a stored frame and of the live view, the ten-band mosaic, the
+coverage map (console and report) and the calibration pictures; then the same in headless
+Chromium at desktop and phone sizes.
+
+The session here is written straight into the store (no capture: a few ms) with mosaics whose
+bands hold known values, so the spectra are checked to the DN; the daemon's sensor is 64² so
+the live view and calibration captures are cheap."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from api_support import daemon, small_rig_config
+
+from m2s2hil.plan import Sweep
+from m2s2hil.processing.calibration import CameraCalibration, save_calibration
+from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.store.session import SessionStore
+
+N = 64
+DARK = 3.0
+
+
+def band_levels(ev_index: int) -> np.ndarray:
+    return 100.0 + 10.0 * np.arange(10) + ev_index  # DN per band before the dark
+
+
+def mosaic_of(levels: np.ndarray, model, region_levels: np.ndarray | None = None) -> np.ndarray:
+    """A mosaic whose band-b pixels hold levels[b]; the top-left 16×16 holds region_levels."""
+    lay = MosaicLayout.from_camera(model).array
+    out = np.asarray(levels)[np.tile(lay, (N // lay.shape[0], N // lay.shape[1]))]
+    if region_levels is not None:
+        out[:16, :16] = np.asarray(region_levels)[np.tile(lay, (16 // lay.shape[0], 16 // lay.shape[1]))]
+    return out
+
+
+def write_session(root: Path) -> tuple[str, dict[str, int]]:
+    """weak × (E0, E2) × 4 azimuths: 5 frames written (one QC-flagged), one skipped, 2 pending."""
+    rig = small_rig_config(N)
+    sweep = Sweep(satellite="voyager", build="B3", lighting=["weak"], tilts=["E0", "E2"], azimuth_step_deg=90,
+                  dark={"frames": 1})
+    st = SessionStore.create(root, sweep, rig)
+    model = rig.camera.model
+    idx: dict[str, int] = {}
+    frames = [e for e in sweep.expand(st.rig) if e.kind == "frame"]
+    for ev in sweep.expand(st.rig):
+        if ev.kind == "dark":
+            st.write_dark(ev, np.full((N, N), DARK, np.float32))
+    for k, ev in enumerate(frames[:5]):
+        raw = mosaic_of(band_levels(k), model, region_levels=band_levels(k) + 50).astype(np.uint16)
+        rgb = np.zeros((N // 4, N // 4, 3), np.uint8)
+        rgb[..., 1] = 40 * (k + 1)
+        qc = {"score": 0.4, "flags": ["unstable"]} if k == 1 else {"score": 0.95, "flags": []}
+        rec = st.write_frame(ev, raw, preview_rgb=rgb, meta={"exposure_s": 0.01, "gain": 1.0, "qc": qc,
+                                                             "temperature_c": 30.0})
+        idx[ev.event_id] = rec.index
+    st.record_skip(frames[5], "MoveStalled: the turntable stalled", "motion")
+    st.close()
+    return st.session_id, {"first": idx[frames[0].event_id], "flagged": idx[frames[1].event_id],
+                           "skipped_event": frames[5].event_id}  # type: ignore[dict-item]
+
+
+@pytest.fixture(scope="module")
+def d(tmp_path_factory: pytest.TempPathFactory):
+    root = tmp_path_factory.mktemp("pictures") / "data"
+    sid, idx = write_session(root)
+    with daemon(root, rig_config=small_rig_config(N)) as dd:
+        dd.sid, dd.idx = sid, idx  # type: ignore[attr-defined]
+        yield dd
+
+
+def test_stored_spectrum_is_the_dark_subtracted_band_means(d) -> None:
+    n = d.idx["first"]
+    # one point: the mosaic cell holding it, every band's own pixels
+    r = d.client.get(f"/sessions/{d.sid}/frames/{n}/spectrum", params={"x": 33, "y": 41})
+    assert r.status_code == 200, r.text
+    s = r.json()
+    assert s["region"] == {"x": 32, "y": 40, "w": 4, "h": 4} and s["sensor"] == [N, N]
+    assert s["bands_nm"] == list(d.rig.config.camera.model.bands_nm)
+    assert s["dn"] == pytest.approx(list(band_levels(0) - DARK))
+    assert s["dark"] and s["reflectance"] is None  # no white reference yet
+    # a region inside the brighter top-left square, and one half in it
+    s = d.client.get(f"/sessions/{d.sid}/frames/{n}/spectrum", params={"x": 0, "y": 0, "w": 16, "h": 16}).json()
+    assert s["dn"] == pytest.approx(list(band_levels(0) + 50 - DARK))
+    s = d.client.get(f"/sessions/{d.sid}/frames/{n}/spectrum", params={"x": 0, "y": 0, "w": 32, "h": 16}).json()
+    assert s["dn"] == pytest.approx(list(band_levels(0) + 25 - DARK))
+
+
+@pytest.mark.parametrize("params, key", [({"x": N, "y": 0}, "query.x"), ({"x": 0, "y": 99}, "query.y"),
+                                         ({"x": 60, "y": 0, "w": 8}, "query.w"),
+                                         ({"x": 0, "y": 60, "h": 5}, "query.h")])
+def test_spectrum_outside_the_sensor_is_a_422_naming_the_parameter(d, params, key) -> None:
+    r = d.client.get(f"/sessions/{d.sid}/frames/{d.idx['first']}/spectrum", params=params)
+    assert r.status_code == 422 and r.json()["detail"].startswith(key), r.text
+
+
+def test_spectrum_of_a_missing_frame_or_session_is_404(d) -> None:
+    assert d.client.get(f"/sessions/{d.sid}/frames/999/spectrum", params={"x": 0, "y": 0}).status_code == 404
+    r = d.client.get("/sessions/20000101T000000-nope-B1-weak-0000/frames/0/spectrum", params={"x": 0, "y": 0})
+    assert r.status_code == 404
+
+
+def test_band_mosaic_tiles_ten_labelled_bands(d) -> None:
+    r = d.client.get(f"/sessions/{d.sid}/frames/{d.idx['first']}/bands.png", params={"tile": 64})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape == (2 * (64 + 22 + 4), 5 * (64 + 4), 3)  # 2 rows of 5 tiles, a label bar on each
+    # each tile is stretched to its band's own level: the bright top-left square shows in every band
+    tile = img[2 + 22: 2 + 22 + 64, 2: 2 + 64, 1].astype(int)
+    assert tile[:8, :8].mean() > tile[-8:, -8:].mean() + 20
+
+
+def test_coverage_states_and_report_map(d) -> None:
+    cov = d.client.get(f"/sessions/{d.sid}/coverage").json()
+    assert cov["elevations"] == ["E0", "E2"] and cov["azimuths_deg"] == [0.0, 90.0, 180.0, 270.0]
+    assert cov["counts"] == {"captured": 4, "flagged": 1, "skipped": 1, "failed": 0, "pending": 2}
+    by = {c["event_id"]: c for c in cov["cells"]}
+    assert by[d.idx["skipped_event"]]["reason"].startswith("MoveStalled")
+    assert [c["n"] for c in cov["cells"] if c["state"] == "flagged"] == [d.idx["flagged"]]
+    page = d.client.get(f"/sessions/{d.sid}/report.html").text
+    assert "<svg" in page and "coverage map" in page
+    assert "href='#frame-" in page and "id='frame-" in page  # a cell links to its frame in the sheet
+    assert "<details" in page  # the per-pose table stays, folded
+
+
+def test_live_spectrum_reads_the_newest_live_frame(d) -> None:
+    r = d.client.get("/camera/live/spectrum", params={"x": 0, "y": 0})
+    assert r.status_code in (200, 409)  # 409 before any live frame (another test may have streamed)
+    d.client.put("/camera/live", json={"exposure_s": 0.004})
+    assert d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).status_code == 200
+    s = d.client.get("/camera/live/spectrum", params={"x": 8, "y": 8, "w": 8, "h": 8}).json()
+    assert s["source"].startswith("live/") and len(s["dn"]) == 10 and s["region"]["w"] == 8
+    assert s["exposure_s"] == pytest.approx(0.004) and max(s["dn"]) > 0
+    assert d.client.get("/camera/live/spectrum", params={"x": N, "y": 0}).status_code == 422
+
+
+def test_reflectance_against_the_white_reference(d, tmp_path: Path) -> None:
+    from m2s2hil.api.console.state import calibration_path_for
+
+    model = d.rig.config.camera.model
+    white = mosaic_of(2.0 * (band_levels(0) - DARK), model).astype(np.float32)  # a panel twice as bright
+    path = calibration_path_for(d.manager)
+    save_calibration(path, CameraCalibration(source=str(path), white_mosaic=white,
+                                             white_reflectance=np.full(10, 0.9)),
+                     bands_nm=list(model.bands_nm),
+                     provenance={"exposure_s": 0.02, "gain": 1.0, "lighting": "weak", "captured_at": "now"})
+    try:
+        s = d.client.get(f"/sessions/{d.sid}/frames/{d.idx['first']}/spectrum", params={"x": 40, "y": 40}).json()
+        # frame 10 ms, panel 20 ms: per unit exposure the frame is as bright as the 0.9 panel
+        assert s["reflectance"] == pytest.approx([0.9] * 10, rel=1e-4)
+        assert s["white_reference"]["same_lighting"] is True and not s["notes"]
+        pics = d.client.get("/calibration/pictures").json()["items"]
+        white_pic = next(p for p in pics if p["kind"] == "white")
+        r = d.client.get(white_pic["url"])
+        assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
+    finally:
+        path.unlink()
+        (path.parent / f"{path.stem}_white.tiff").unlink()
+
+
+def test_calibration_pictures_dark_maps_and_phase_cost_map(d) -> None:
+    r = d.client.post("/calibration/darks", json={"exposures": [{"exposure_s": 0.004, "gain": 1.0}], "n_frames": 2})
+    assert r.status_code == 201, r.text
+    pics = d.client.get("/calibration/pictures").json()["items"]
+    darks = [p for p in pics if p["kind"] == "dark"]
+    assert darks and "hot pixels" in darks[0]["alt"]
+    r = d.client.get(darks[0]["url"])
+    assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
+    assert d.client.get("/calibration/darks/nope.json/map.png").status_code in (404, 422)
+    r = d.client.post("/calibration/phase.png", json={"exposure_s": 0.01})
+    assert r.status_code == 200 and r.content[:4] == b"\x89PNG", r.text
+    assert "cost at origin" in r.headers["x-phase-summary"]
+
+
+# ----------------------------------------------------------------------------- in the browser
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
+    from api_support import uvicorn_thread
+    from browser_support import browser
+
+    from m2s2hil.api import create_app
+
+    shots = Path(os.environ.get("M2S2HIL_SCREENSHOTS") or tmp_path)
+    shots.mkdir(parents=True, exist_ok=True)
+    with uvicorn_thread(create_app(d.manager)) as base, browser() as b:
+        page = b.new_page(viewport={"width": 1400, "height": 950}, bypass_csp=True)
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(base + "/")
+        # the browser view: a session's coverage map, a click on a cell opens the frame viewer
+        page.click("#tabs button[data-view='browser']")
+        page.locator("#sessions-table tbody tr", has_text=d.sid).click()
+        page.wait_for_selector("#b-coverage rect.cov-flagged")
+        assert page.locator("#b-coverage rect.cov-skipped").count() == 1
+        assert page.locator("#b-coverage rect.cov-pending").count() == 2
+        page.locator(f"#b-coverage rect[data-n='{d.idx['flagged']}']").click()
+        page.wait_for_selector("#frame-viewer:not([hidden])")
+        page.wait_for_function("document.getElementById('fv-title').textContent.endsWith('frame "
+                               f"{d.idx['flagged']}')")
+        # the centre cell's spectrum comes at once; a click elsewhere asks for that cell
+        page.wait_for_function("window.m2s2hilPictures.fv.region !== null")
+        box = page.locator("#fv-canvas").bounding_box()
+        assert box is not None
+        page.mouse.click(box["x"] + box["width"] / 2 - 0.45 * min(box["width"], box["height"]) + 4,
+                         box["y"] + box["height"] / 2 - 0.45 * min(box["width"], box["height"]) + 4)
+        page.wait_for_function("window.m2s2hilPictures.fv.region.x === 0")
+        label = page.locator("#fv-spectrum canvas").get_attribute("aria-label")
+        assert label is not None and "431 nm 151.0 DN" in label  # frame 1's top-left: 100 + 1 + 50 − 3
+        # zoom with the wheel, then reset
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.wheel(0, -400)
+        page.wait_for_function("window.m2s2hilPictures.fv.scale > 1.5")
+        page.screenshot(path=str(shots / "console_frame_viewer.png"))
+        page.click("#fv-reset")
+        assert page.evaluate("window.m2s2hilPictures.fv.scale") == 1
+        page.select_option("#fv-mode", "bands")
+        page.wait_for_function("window.m2s2hilPictures.fv.bandsGeom !== null")
+        page.screenshot(path=str(shots / "console_ten_bands.png"))
+        page.click("#fv-close")
+        # the live view: a click on the image gives the live spectrum
+        page.click("#tabs button[data-view='setup']")
+        page.click("#live-toggle")
+        page.wait_for_function("window.m2s2hilLive && window.m2s2hilLive.frames >= 2", timeout=60000)
+        page.wait_for_function("window.m2s2hilPictures.live.sensor !== null", timeout=30000)
+        page.locator("#live-canvas").click(position={"x": 40, "y": 40})
+        page.wait_for_function("document.querySelector('#live-spectrum canvas').getAttribute('aria-label')"
+                               ".includes('431 nm')", timeout=30000)
+        page.click("#live-toggle")
+        page.screenshot(path=str(shots / "console_live_spectrum.png"), full_page=True)
+        # phone: the viewer fills the screen and stacks the spectrum under the image
+        phone = b.new_page(viewport={"width": 390, "height": 844}, bypass_csp=True, device_scale_factor=2)
+        phone.on("pageerror", lambda e: errors.append(str(e)))
+        phone.goto(base + "/")
+        phone.click("#tabs button[data-view='browser']")
+        phone.locator("#sessions-table tbody tr", has_text=d.sid).click()
+        phone.wait_for_selector("#b-coverage rect.cov-captured")
+        phone.locator(f"#b-coverage rect[data-n='{d.idx['first']}']").click()
+        phone.wait_for_function("window.m2s2hilPictures.fv.region !== null")
+        width = phone.evaluate("document.documentElement.scrollWidth")
+        phone.screenshot(path=str(shots / "console_frame_viewer_phone.png"))
+        assert width <= 390, f"the frame viewer is {width} px wide on a 390-px phone"
+    assert not errors, errors
