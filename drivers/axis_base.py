@@ -242,7 +242,14 @@ class RotaryAxisBase(ABC):
         if not wait:
             return degrees
         assert start is not None
-        self._await_arrival(start, degrees, command)
+        return self.finish_move(start, degrees, command)
+
+    def finish_move(self, start: float, degrees: float, command: str = "") -> float:
+        """The second half of ``move_to(degrees)`` after a ``move_to(degrees, wait=False)``
+        from ``start``: wait for it as ``move_to`` waits (MoveStalled) and verify the
+        read-back (MoveNotVerified), without commanding it again (a move that ended short
+        must not be hidden by a second one)."""
+        self._await_arrival(start, degrees, command or f"move to {degrees:g}")
         if self.settle_s:
             self._owner.clock.sleep(self.settle_s)
         actual = self.position()

@@ -9,6 +9,7 @@ are written to DIR (``docs/images`` for the documentation)."""
 from __future__ import annotations
 
 import os
+import re
 import time
 from pathlib import Path
 
@@ -62,6 +63,11 @@ def test_console_end_to_end(tmp_path: Path) -> None:
         first = page.evaluate("window.m2s2hilLive.seq")
         page.wait_for_function(f"window.m2s2hilLive.seq > {first}", timeout=30000)
         assert page.locator("#st-sat").inner_text().endswith("%")
+        # the canvases' text alternatives say what they show
+        assert re.match(r"live view, false colour: frame \d+ .* ms",
+                        page.get_attribute("#live-canvas", "aria-label"))
+        assert re.search(r"[\d.]+ % saturated, 99.9th percentile \d+ / \d+",
+                         page.get_attribute("#histogram", "aria-label"))
         # the turntable-axis overlay follows the operator's setting (it travels with the frames)
         page.fill("#live-axis", "0.4")
         page.dispatch_event("#live-axis", "change")

@@ -85,9 +85,10 @@ def test_stored_spectrum_is_the_dark_subtracted_band_means(d) -> None:
     assert s["dn"] == pytest.approx(list(band_levels(0) - DARK))
     assert s["dark"] and s["reflectance"] is None  # no white reference yet
     # a region inside the brighter top-left square, and one half in it
-    s = d.client.get(f"/sessions/{d.sid}/frames/{n}/spectrum", params={"x": 0, "y": 0, "w": 16, "h": 16}).json()
+    url = f"/sessions/{d.sid}/frames/{n}/spectrum"
+    s = d.client.get(url, params={"x": 0, "y": 0, "w": 16, "h": 16}).json()
     assert s["dn"] == pytest.approx(list(band_levels(0) + 50 - DARK))
-    s = d.client.get(f"/sessions/{d.sid}/frames/{n}/spectrum", params={"x": 0, "y": 0, "w": 32, "h": 16}).json()
+    s = d.client.get(url, params={"x": 0, "y": 0, "w": 32, "h": 16}).json()
     assert s["dn"] == pytest.approx(list(band_levels(0) + 25 - DARK))
 
 
@@ -150,7 +151,8 @@ def test_reflectance_against_the_white_reference(d, tmp_path: Path) -> None:
                      bands_nm=list(model.bands_nm),
                      provenance={"exposure_s": 0.02, "gain": 1.0, "lighting": "weak", "captured_at": "now"})
     try:
-        s = d.client.get(f"/sessions/{d.sid}/frames/{d.idx['first']}/spectrum", params={"x": 40, "y": 40}).json()
+        url = f"/sessions/{d.sid}/frames/{d.idx['first']}/spectrum"
+        s = d.client.get(url, params={"x": 40, "y": 40}).json()
         # frame 10 ms, panel 20 ms: per unit exposure the frame is as bright as the 0.9 panel
         assert s["reflectance"] == pytest.approx([0.9] * 10, rel=1e-4)
         assert s["white_reference"]["same_lighting"] is True and not s["notes"]
@@ -164,7 +166,8 @@ def test_reflectance_against_the_white_reference(d, tmp_path: Path) -> None:
 
 
 def test_calibration_pictures_dark_maps_and_phase_cost_map(d) -> None:
-    r = d.client.post("/calibration/darks", json={"exposures": [{"exposure_s": 0.004, "gain": 1.0}], "n_frames": 2})
+    r = d.client.post("/calibration/darks",
+                      json={"exposures": [{"exposure_s": 0.004, "gain": 1.0}], "n_frames": 2})
     assert r.status_code == 201, r.text
     pics = d.client.get("/calibration/pictures").json()["items"]
     darks = [p for p in pics if p["kind"] == "dark"]
@@ -211,7 +214,7 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
                          box["y"] + box["height"] / 2 - 0.45 * min(box["width"], box["height"]) + 4)
         page.wait_for_function("window.m2s2hilPictures.fv.region.x === 0")
         label = page.locator("#fv-spectrum canvas").get_attribute("aria-label")
-        assert label is not None and "431 nm 151.0 DN" in label  # frame 1's top-left: 100 + 1 + 50 − 3
+        assert label is not None and "431 nm 148.0 DN" in label  # frame 1's top-left: 100 + 1 + 50 − 3
         # zoom with the wheel, then reset
         page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
         page.mouse.wheel(0, -400)

@@ -197,7 +197,7 @@ def test_a_bad_file_is_one_line_naming_it(tmp_path, case, match):
 
 
 def rig_with_mesh(tmp_path: Path, body: str) -> Path:
-    from tests.rig_files import rig_text
+    from rig_files import rig_text
 
     rig = tmp_path / "rig.toml"
     rig.write_text(rig_text() + "\n" + body)

@@ -39,6 +39,12 @@ Cost: 60–150 ms per 2048² frame (512² cube) on a busy 2-core machine, mostly
 Gaussian mixture (docs/benchmarks.md); it runs in the engine's processing thread, behind a
 bounded queue, off the camera thread.
 
+Twin checks (``capture_qc_hook(twin=True)``): the hook also compares frames with the digital
+twin at their recorded pose and lighting (``m2s2hil.twin.checks``: mockup off the axis, wrong
+build, a lamp out, tilt drift), on the first frames of every lighting and elevation and
+every 8th after; their result is ``meta["qc"]["twin"]`` and their flags join ``flags``. The
+engine tells the hook its session through ``hook.bind(sweep, rig)``.
+
 Engine hook: ``capture_qc_hook()`` returns a callable ``hook(processed_frame, event,
 meta) -> dict`` whose dict (``score`` + details + ``flags`` + ``flagged``) the engine
 stores as ``meta["qc"]``. It also keeps the session's score distribution
@@ -64,7 +70,10 @@ from m2s2hil.analysis.metrics.scores import micro_iou
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
 
 QC_VERSION = 1
-FLAGS = ("unstable", "saturated", "underexposed", "no_object", "object_cut")
+#: The capture QC's own flags, then the twin's (``m2s2hil.twin.checks.FLAGS``, when its
+#: checks run: ``capture_qc_hook(twin=True)``).
+FLAGS = ("unstable", "saturated", "underexposed", "no_object", "object_cut",
+         "off_axis", "yawed", "tilt_off", "tilt_drift", "wrong_mockup", "wrong_build", "lamp_out", "lamp_dim")
 # Immerkær's noise operator: the difference of two Laplacians, blind to planes and ramps.
 _IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
 _MAD_TO_SIGMA = 1.0 / (0.6745 * 6.0)  # 6 = the operator's L2 norm
@@ -292,8 +301,26 @@ class CaptureQC:
     """
 
     config: QcConfig = field(default_factory=QcConfig)
+    #: The twin's checks (``m2s2hil.twin.checks``): off (False), on with their defaults (True)
+    #: or with a ``CheckConfig``. They need the session, which the engine gives ``bind``.
+    twin: Any = False
     _scores: list[tuple[str, float, tuple[str, ...]]] = field(default_factory=list, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _checks: Any = field(default=None, repr=False)
+
+    def bind(self, sweep: Any, rig: Any) -> None:
+        """The session the frames belong to (called by the engine when a run is built)."""
+        if self.twin is False or self.twin is None:
+            return
+        from m2s2hil.twin.checks import CheckConfig, sweep_checks
+
+        cfg = self.twin if isinstance(self.twin, CheckConfig) else CheckConfig()
+        cube_side = max(rig.camera.model.width, rig.camera.model.height) // 4  # superpixel cube
+        if cube_side < cfg.size:  # never upsample a small sensor's cube
+            from dataclasses import replace
+
+            cfg = replace(cfg, size=max(24, cube_side))
+        self._checks = sweep_checks(sweep, rig, cfg)
 
     def __call__(self, processed: Any, event: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
         res = capture_stability(
@@ -302,9 +329,19 @@ class CaptureQC:
             config=self.config,
             full_scale=_full_scale(meta, self.config),
         )
+        out = res.as_dict()
+        flags = res.flags
+        if self._checks is not None:
+            key = (getattr(event, "lighting", None), getattr(event, "elevation", None))
+            twin = self._checks(np.asarray(processed.cube), meta, key, getattr(processed, "saturated_mask", None))
+            if twin is not None:
+                out["twin"] = twin
+                flags = (*flags, *(f for f in twin.get("flags", ()) if f not in flags))
+                out["flags"] = list(flags)
+                out["flagged"] = bool(flags)
         with self._lock:
-            self._scores.append((str(getattr(event, "event_id", "?")), res.score, res.flags))
-        return res.as_dict()
+            self._scores.append((str(getattr(event, "event_id", "?")), res.score, flags))
+        return out
 
     def summary(self) -> dict[str, Any]:
         with self._lock:
@@ -312,9 +349,10 @@ class CaptureQC:
         return _summarise([(e, s, list(f)) for e, s, f in rows], self.config.threshold)
 
 
-def capture_qc_hook(config: QcConfig | None = None) -> CaptureQC:
-    """The QC callable to pass as ``Engine(..., qc=capture_qc_hook())``."""
-    return CaptureQC(config or QcConfig())
+def capture_qc_hook(config: QcConfig | None = None, *, twin: Any = False) -> CaptureQC:
+    """The QC callable to pass as ``Engine(..., qc=capture_qc_hook())``; ``twin`` turns on the
+    twin's checks during the sweep (True, or a ``twin.checks.CheckConfig``)."""
+    return CaptureQC(config or QcConfig(), twin=twin)
 
 
 HISTOGRAM_EDGES: tuple[float, ...] = (0.0, 0.5, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98, 1.0)

@@ -48,13 +48,13 @@ from .console import browser, calibration, live, manual, page, pictures, snapsho
 from .guards.csrf import HEADER, CrossSiteGuard
 from .guards.hosts import HostAllowList
 from .guards.security import BodyLimit
-from .routes import daemon, frames, lens, queue, rig, sessions
+from .routes import activity, daemon, frames, lens, queue, rig, sessions
 from .streams import StreamLimits, Streams
 
 API_TITLE = "m2s2hil capture daemon"
 
 GUARDED_ROUTERS: list[APIRouter] = [sessions.router, frames.router, queue.router, rig.router, daemon.router,
-                                    lens.router,
+                                    lens.router, activity.router,
                                     # the operator console's (docs/console.md)
                                     manual.router, live.router, snapshots.router, calibration.router,
                                     browser.router, page.router, pictures.router]
@@ -114,6 +114,7 @@ def create_app(
     handlers.install(app)
 
     # add_middleware wraps: the last added runs first.
+    app.add_middleware(activity.ActivityRecorder)  # innermost: what passed the guards (who, from where)
     app.add_middleware(BodyLimit, max_bytes=max_body_bytes)
     if cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=list(cors_origins), allow_methods=["GET", "POST"],

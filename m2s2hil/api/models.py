@@ -179,3 +179,52 @@ class Health(_Out):
     uptime_s: float
 
 
+
+
+class ActivityActor(_Out):
+    key: str = Field(description="One client: its X-M2S2HIL-Client id, else its address and user agent.")
+    address: str | None
+    client: str | None = Field(description="The X-M2S2HIL-Client header it sent, if any.")
+    origin: str | None
+    authenticated: bool = Field(description="It carried the daemon's bearer token.")
+    user_agent: str | None
+
+
+class ActivityEntry(_Out):
+    seq: int
+    wall: float = Field(description="Epoch seconds.")
+    kind: Literal["action", "fault", "retry", "state", "session", "queue", "daemon"]
+    level: Literal["info", "warning", "error"]
+    message: str
+    session_id: str | None
+    actor: ActivityActor | None = Field(description="Who sent the request (operator actions only).")
+    details: dict[str, Any]
+
+
+class ActivityPage(_Out):
+    items: list[ActivityEntry]
+    last_seq: int = Field(description="Pass as ?since= next time.")
+    newest_seq: int
+    gap: bool = Field(description="Entries after `since` are no longer kept (the ring holds the last 1000).")
+
+
+class ActivityClient(_Out):
+    key: str
+    you: bool = Field(description="The client asking.")
+    address: str | None
+    client: str | None
+    origin: str | None
+    authenticated: bool
+    user_agent: str | None
+    last_seen_s: float
+    requests: int
+    controlling: bool = Field(description="It changed something within the window.")
+    last_action: str | None = Field(description="Its last state change, e.g. 'POST /rig/axes/turntable/jog'.")
+    last_action_s: float | None
+
+
+class ActivityClients(_Out):
+    window_s: float
+    others_connected: int
+    others_controlling: int
+    clients: list[ActivityClient]

@@ -146,7 +146,10 @@ async function refreshAxes() {
     pos.textContent = ax.position_deg === null ? "–" : ax.position_deg.toFixed(2) + "°" + (ax.moving ? " ⟳" : "");
   }
   for (const b of document.querySelectorAll(".manual")) b.disabled = Boolean(a.owner);
-  const on = new Set(a.lamps_on || []);
+  // while a session owns the rig the daemon does not read the lamps: its status says which are on
+  let lampsOn = a.lamps_on;
+  if (lampsOn == null && a.owner) lampsOn = (await guarded(() => api("GET", "/sessions/" + a.owner)))?.lamps_on;
+  const on = new Set(lampsOn || []);
   for (const cb of document.querySelectorAll("#lamps input")) cb.checked = on.has(cb.value);
   for (const b of document.querySelectorAll("#presets button")) {
     const lamps = a.presets[b.dataset.preset] || [];
@@ -267,7 +270,7 @@ async function showFrame(jpeg, fields) {
   const fps = times.length > 1 ? (times.length - 1) * 1000 / (times[times.length - 1] - times[0]) : 0;
   const latency = Date.now() / 1000 - st.captured_at;
   window.m2s2hilLive = { seq: st.seq, fps, latency_ms: latency * 1000, frames: (window.m2s2hilLive?.frames || 0) + 1 };
-  $("live-note").textContent = `frame ${st.seq} · ${st.sensor?.join("×")} sensor → ${img.width}×${img.height} · ${st.exposure_s * 1000} ms · gain ${st.gain}`;
+  $("live-note").textContent = `frame ${st.seq} · ${st.sensor?.join("×")} sensor → ${img.width}×${img.height} · ${fmtMs(st.exposure_s)} · gain ${st.gain}`;
   $("st-fps").textContent = fps.toFixed(1);
   $("st-latency").textContent = (latency * 1000).toFixed(0) + " ms";
   $("st-sat").textContent = (100 * st.saturated_fraction).toFixed(3) + " %";
@@ -365,6 +368,9 @@ function buildForm(cat) {
   estimate();
 }
 
+// Exposures in ms without float noise (0.2 s -> "200 ms", not "199.99999999999997 ms").
+function msOf(s) { return Number((s * 1000).toPrecision(6)); }
+function fmtMs(s) { return s == null || !isFinite(s) ? "–" : `${Number((s * 1000).toPrecision(4))} ms`; }
 function fmtS(s) { if (!isFinite(s)) return "–"; const m = Math.floor(s / 60); return m ? `${m} min ${Math.round(s % 60)} s` : `${s.toFixed(1)} s`; }
 
 async function estimate() {
@@ -372,7 +378,7 @@ async function estimate() {
   try {
     const r = await api("POST", "/plans/estimate", sweepFromForm());
     const size = r.bytes >= 1e9 ? (r.bytes / 1e9).toFixed(2) + " GB" : (r.bytes / 1e6).toFixed(0) + " MB";
-    box.textContent = `${r.frames} frames + ${r.darks} darks · estimate ${fmtS(r.estimate_s)} (lower bound ${fmtS(r.lower_bound_s)}) · ${size}`;
+    box.textContent = `${r.frames + r.darks} captures: ${r.frames} frames + ${r.darks} dark${r.darks === 1 ? "" : "s"} · estimate ${fmtS(r.estimate_s)} (lower bound ${fmtS(r.lower_bound_s)}) · ${size}`;
     box.className = "estimate";
   } catch (e) { box.textContent = e.message; box.className = "estimate bad"; }
 }
@@ -394,9 +400,10 @@ async function pollRun() {
   const id = state.watched; if (!id) return;
   const s = await guarded(() => api("GET", "/sessions/" + id));
   if (!s) return;
-  $("run-state").textContent = s.state;
+  $("run-state").textContent = s.state === "queued" && s.queue_position ? `queued (#${s.queue_position})` : s.state;
   $("run-progress").max = Math.max(1, s.total);
   $("run-progress").value = s.done;
+  // captures = lit frames + darks, the unit of done/total (the estimate says the same)
   $("run-frames").textContent = `${s.done} / ${s.total}` + (s.skipped ? ` (${s.skipped} skipped)` : "");
   $("run-pose").textContent = s.azimuth_deg == null ? "–" : `az ${s.azimuth_deg.toFixed(1)}° tilt ${(s.tilt_deg ?? 0).toFixed(1)}°`;
   $("run-light").textContent = s.lighting ? `${s.lighting} ${s.elevation ?? ""}` : "–";
@@ -504,13 +511,13 @@ async function loadCalibration() {
   if (!r) return;
   const wr = r.white_reference;
   report($("c-file"), `${r.file}${r.exists ? "" : " (not written yet)"}\n` +
-    (wr ? `white reference: ${wr.file}, captured ${wr.provenance?.captured_at ?? "?"} at ${wr.provenance?.exposure_s ?? "?"} s` : "no white reference") +
+    (wr ? `white reference: ${wr.file}, captured ${wr.provenance?.captured_at ?? "?"} at ${fmtMs(wr.provenance?.exposure_s)}` : "no white reference") +
     `\ndarks in library: ${(r.darks || []).length}` + (r.named_in_rig_file ? "" : "\nthe rig file names no calibration file"), true);
 }
 $("darks-form").addEventListener("submit", async (ev) => {
   ev.preventDefault(); report($("d-result"), "taking darks…", true);
   const r = await guarded(() => api("POST", "/calibration/darks", { plan: sweepFromForm(), n_frames: Number($("d-frames").value), lens_capped: $("d-capped").checked }), $("d-result"));
-  if (r) { report($("d-result"), r.darks.map((d) => `${(d.exposure_s * 1000).toFixed(2)} ms gain ${d.gain}: ${d.n_frames} frames, ${d.temperature_c.toFixed(1)} °C → ${d.file}`).join("\n"), true); loadCalibration(); }
+  if (r) { report($("d-result"), r.darks.map((d) => `${fmtMs(d.exposure_s)} gain ${d.gain}: ${d.n_frames} frames, ${d.temperature_c.toFixed(1)} °C → ${d.file}`).join("\n"), true); loadCalibration(); }
 });
 $("white-form").addEventListener("submit", async (ev) => {
   ev.preventDefault(); report($("w-result"), "capturing…", true);
@@ -538,7 +545,7 @@ async function init() {
   if (!state.catalog) { state.catalog = cat; buildForm(cat); }
   const live = await guarded(() => api("GET", "/camera/live"));
   if (live) {
-    $("live-exposure").value = String(live.settings.exposure_s * 1000);
+    $("live-exposure").value = String(msOf(live.settings.exposure_s));
     $("live-gain").value = String(live.settings.gain);
     $("live-axis").value = String(live.settings.axis_x);
   }

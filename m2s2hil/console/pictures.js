@@ -111,7 +111,7 @@ const pictures = (() => {
   function niceCeil(v) {
     if (!(v > 0)) return 1;
     const e = Math.pow(10, Math.floor(Math.log10(v))); const m = v / e;
-    return (m <= 1 ? 1 : m <= 2 ? 2 : m <= 2.5 ? 2.5 : m <= 5 ? 5 : 10) * e;
+    return (m <= 1 ? 1 : m <= 2 ? 2 : m <= 2.5 ? 2.5 : m <= 3 ? 3 : m <= 4 ? 4 : m <= 5 ? 5 : m <= 8 ? 8 : 10) * e;
   }
   function shortNum(v) { return v >= 1e4 ? (v / 1e3).toFixed(0) + "k" : v >= 100 ? v.toFixed(0) : v.toFixed(1); }
 
@@ -152,7 +152,9 @@ const pictures = (() => {
       if (clamp) { fx = Math.min(Math.max(fx, 0), 0.9999); fy = Math.min(Math.max(fy, 0), 0.9999); }
       if (!s || fx < 0 || fy < 0 || fx >= 1 || fy >= 1) return null;
       return { x: Math.floor(fx * s[0]), y: Math.floor(fy * s[1]) };
-    }, async (reg) => { live.region = reg; await liveSpectrum(); }, () => live.sensor !== null);
+    }, async (reg) => { live.region = reg; liveMark(); await liveSpectrum(); }, () => live.sensor !== null);
+    live.mark = mk("div", { class: "pic-live-mark", "aria-hidden": "true" }); live.mark.hidden = true;
+    cv.parentElement.append(live.mark);
     // the sensor size travels with the live frames' statistics
     setInterval(async () => {
       if (!window.m2s2hilLive || !window.m2s2hilLive.frames) return;
@@ -165,6 +167,12 @@ const pictures = (() => {
     const follow = mk("label", {}, ""); const cb = mk("input", { type: "checkbox", id: "live-spectrum-follow" });
     follow.append(cb, document.createTextNode(" follow the live frames"));
     box.querySelector(".pic-spec-head").append(follow);
+  }
+  function liveMark() {  // where the spectrum comes from, over the live image (percentages of it)
+    const g = live.region, s = live.sensor, m = live.mark; if (!m || !g || !s) return;
+    m.hidden = false;
+    m.style.left = (100 * g.x / s[0]) + "%"; m.style.top = (100 * g.y / s[1]) + "%";
+    m.style.width = `max(6px, ${100 * g.w / s[0]}%)`; m.style.height = `max(6px, ${100 * g.h / s[1]}%)`;
   }
   async function liveSpectrum() {
     const g = live.region; if (!g) return;
@@ -331,10 +339,20 @@ const pictures = (() => {
     ctx.imageSmoothingEnabled = fv.scale < 4;  // zoomed in: show the pixels as they are
     ctx.drawImage(fv.img, 0, 0);
     const g = fv.region, s = fv.sensor;
-    if (g && s && fv.mode === "preview") {
-      const sx = fv.img.naturalWidth / s[0], sy = fv.img.naturalHeight / s[1];
+    if (g && s) {  // the spectrum's region: on the image, or on every band's tile
       ctx.strokeStyle = "#ffe066"; ctx.lineWidth = 2 / k;
-      ctx.strokeRect(g.x * sx, g.y * sy, Math.max(g.w * sx, 2 / k), Math.max(g.h * sy, 2 / k));
+      const boxes = [];
+      if (fv.mode === "preview") boxes.push([0, 0, fv.img.naturalWidth, fv.img.naturalHeight]);
+      else if (fv.bandsGeom) {
+        const t = fv.bandsGeom;
+        for (let b = 0; b < 10; b++) {
+          boxes.push([(b % t.cols) * t.tw + t.pad, Math.floor(b / t.cols) * t.th + t.pad + t.bar, t.tw - 2 * t.pad, t.th - 2 * t.pad - t.bar]);
+        }
+      }
+      for (const [ox, oy, bw, bh] of boxes) {
+        const sx = bw / s[0], sy = bh / s[1];
+        ctx.strokeRect(ox + g.x * sx, oy + g.y * sy, Math.max(g.w * sx, 2 / k), Math.max(g.h * sy, 2 / k));
+      }
     }
     ctx.setTransform(1, 0, 0, 1, 0, 0);
     ctx.fillStyle = "rgba(0,0,0,.55)"; ctx.fillRect(0, H - 20 * dpr, 92 * dpr, 20 * dpr);

@@ -56,6 +56,7 @@ from m2s2hil.engine.state import EngineEvent, RunState, SessionFinished
 from m2s2hil.rig.opened import Rig
 
 from . import listing
+from .activity import ActivityLog
 from .engine_requests import Action, request, wait_safe_boundary
 from .errors import Conflict, HoldNotSaved
 from .hold import QueueHold
@@ -109,6 +110,8 @@ class SessionManager:
         self._closed: dict | None = None
         #: The rig opened under a hold, its axes with switches not homed: done before the first session.
         self._home_deferred = home_deferred
+        #: What happened, who did it and from where: faults, retries, state changes, operator actions.
+        self.activity = ActivityLog()
         #: The rig's door for request threads and the emergency stop.
         self.guard = RigGuard(self, estop_grace_s=estop_grace_s, estop_timeout_s=estop_timeout_s)
         #: Status, listings, frames and journals for the clients.
@@ -235,6 +238,9 @@ class SessionManager:
                 with contextlib.suppress(Exception):
                     job.store.record_event("start_failed", {"error": f"{type(exc).__name__}: {exc}"})
                     job.store.set_state("failed")
+                self.activity.record("session", f"session {job.session_id} could not start: "
+                                     f"{type(exc).__name__}: {exc}", level="error", session_id=job.session_id,
+                                     state="failed")
                 with self._cond:
                     job.error = f"{type(exc).__name__}: {exc}"
                     self._finish(job, "failed")
@@ -248,6 +254,7 @@ class SessionManager:
         engine = build_run(self.rig, store=job.store, options=self.engine_options, policy=self.policy,
                            qc=capture_qc_hook())  # a fresh hook per run: it keeps the run's scores
         engine.subscribe(self.metrics.observe)
+        engine.subscribe(lambda ev, sid=job.session_id: self.activity.observe(sid, ev))
         engine.subscribe(lambda ev, job=job: self._on_event(job, ev))
         with self._cond:
             if self._hold.reason or self._closing:  # an emergency stop or a shutdown came in meanwhile
@@ -260,6 +267,8 @@ class SessionManager:
             job.state = "running"
             self.guard.start_engine(engine)
         log.info("session %s started (run %d, %d planned events)", job.session_id, job.run, job.planned)
+        self.activity.record("session", f"session {job.session_id} started (run {job.run}, {job.planned} "
+                             "planned events)", session_id=job.session_id, state="running", run=job.run)
 
     def _on_event(self, job: Job, ev: EngineEvent) -> None:
         if not isinstance(ev, SessionFinished):
@@ -271,6 +280,8 @@ class SessionManager:
                     self._hold.set_now(f"session {job.session_id} failed: {ev.error}")
             if held:
                 log.error("queue held: %s", self._hold.reason)
+                self.activity.record("queue", f"queue held: {self._hold.reason}", level="error",
+                                     session_id=job.session_id)
                 try:
                     self.save_hold()
                 except HoldNotSaved as exc:
@@ -332,6 +343,8 @@ class SessionManager:
             log.error("could not record the cancellation of %s: %s", job.session_id, exc)
         self._finish(job, "cancelled")
         log.info("session %s cancelled while queued", job.session_id)
+        self.activity.record("session", f"session {job.session_id} cancelled while queued",
+                             session_id=job.session_id, state="cancelled")
 
     def hold(self, reason: str) -> None:
         """Hold the queue: the running session goes on, no queued one starts (e.g. while an
@@ -340,6 +353,7 @@ class SessionManager:
         with self._cond:
             self._hold.set_now(reason)
         log.info("queue held: %s", reason)
+        self.activity.record("queue", f"queue held: {reason}", level="warning")
         self.save_hold()
 
     def release(self) -> str | None:
@@ -348,6 +362,7 @@ class SessionManager:
         was = self._hold.release()
         if was:
             log.info("queue released (was held: %s)", was)
+            self.activity.record("queue", f"queue released (was held: {was})")
         return was
 
     def hold_at_once(self, reason: str) -> Job | None:

@@ -146,6 +146,9 @@ class RigGuard:
         sessions.metrics.count_estop()
         job = sessions.hold_at_once("emergency stop")
         log.warning("EMERGENCY STOP requested%s", f" (session {job.session_id} running)" if job else "")
+        sessions.activity.record("queue", "EMERGENCY STOP: lamps off, motion stopped, queue held"
+                                 + (f", session {job.session_id} aborted" if job else ""), level="error",
+                                 session_id=job.session_id if job else None)
         errors = estop.lamps_off(self.rig)
         try:
             sessions.save_hold()

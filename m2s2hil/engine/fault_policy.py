@@ -21,6 +21,10 @@ device_gone → reconnect + retry 2 then abort; disk_full → suspend; other →
 
 A policy is plain data: ``FaultPolicy.model_validate({"timeout": {"action": "skip"}})``
 overrides one class and keeps the defaults for the rest; unknown keys are rejected.
+
+Beside faults, ``qc_pause`` names capture-time QC flags that park the session like a
+``suspend`` (the flagged frame is stored; nothing is captured again): a wrong build on the
+turntable or a dead lamp is the operator's to fix before the sweep goes on.
 """
 
 from __future__ import annotations
@@ -83,6 +87,16 @@ class FaultPolicy(BaseModel):
     device_gone: FaultRule = _rule(action="reconnect", attempts=2, backoff_s=1.0, then="abort")
     disk_full: FaultRule = _rule(action="suspend")
     other: FaultRule = _rule(action="abort")
+    #: Capture-time QC flags that pause the session (the frame is kept): e.g. the twin's
+    #: ``wrong_build`` or ``lamp_out`` (``analysis.qc.FLAGS``). Empty: QC never pauses.
+    qc_pause: tuple[Annotated[str, Field(pattern=r"^[a-z][a-z_]{0,31}$")], ...] = ()
+
+    def qc_pause_reason(self, qc: Any, event_id: str) -> str | None:
+        """Why a stored frame's QC result (``meta["qc"]``) pauses the session, or None."""
+        if not self.qc_pause or not isinstance(qc, dict):
+            return None
+        hit = [f for f in qc.get("flags") or () if f in self.qc_pause]
+        return f"QC flagged {event_id}: {', '.join(hit)}" if hit else None
 
     def rule_for(self, fault_class: str) -> FaultRule:
         return getattr(self, fault_class if fault_class in FAULT_CLASSES else "other")

@@ -63,6 +63,8 @@ class FrameFlow:
                     qc_score=qc_number(rec.meta.get("qc")) if rec else None,
                 )
                 self._progress()
+                pause = self.recovery.policy.qc_pause_reason(rec.meta.get("qc"), ev.event_id) if rec else None
+                suspend = suspend or pause
                 continue
             assert o.error is not None
             res = self.recovery.handle_stored(o.error, ev, o.stage, final=final)

@@ -78,6 +78,9 @@ class FrameStages:
         self.sweep = sweep
         self.ops = ops
         self.qc = qc
+        bind = getattr(qc, "bind", None)
+        if callable(bind):  # a hook that checks frames against the session (the twin's) learns it here
+            bind(sweep, rig.config)
         self.save_truth = save_truth
         self.processor_factory = processor_factory
         self._processors: dict[str | None, Any] = {}  # dark id -> frame processor

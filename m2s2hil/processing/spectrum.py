@@ -85,3 +85,13 @@ def reflectance(dn: np.ndarray, exposure_s: float, gain: float, white: np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.where(white_rate > 0, white_reflectance * rate / white_rate, np.nan)
     return np.asarray(out, np.float64)
+
+
+def superpixel_cube(mosaic: np.ndarray, layout: MosaicLayout) -> np.ndarray:
+    """(bands, H/n, W/n) float32: each band's mean over its positions in every cell (the
+    super-pixel cube, in numpy: for pictures, where a numba kernel's compile costs more than it saves)."""
+    n = layout.n
+    h, w = mosaic.shape
+    cells = np.asarray(mosaic, np.float32).reshape(h // n, n, w // n, n).transpose(1, 3, 0, 2)
+    bands = [np.mean([cells[r, c] for r, c in pos], axis=0) for pos in layout.positions]
+    return np.stack(bands).astype(np.float32)

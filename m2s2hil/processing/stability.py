@@ -32,6 +32,8 @@ class PhaseCheck:
     cost_nominal: float  # relative disagreement of duplicates at offset (0, 0)
     cost_best: float
     conclusive: bool  # False when the layout or the scene cannot tell
+    #: cost[sy][sx] of every origin shift tried (the console's phase cost map); empty when none was
+    cost: tuple[tuple[float, ...], ...] = ()
 
     @property
     def suspect(self) -> bool:
@@ -98,7 +100,8 @@ def check_phase(
     conclusive = float(cost.max()) >= max(min_cost, noise)
     suspect = conclusive and c0 >= max(min_cost, noise) and c0 >= ratio * cb
     offset = (int(-best[0] % n), int(-best[1] % n)) if suspect else (0, 0)
-    return PhaseCheck(offset, c0, cb, conclusive=conclusive)
+    table = tuple(tuple(float(v) for v in row) for row in cost)
+    return PhaseCheck(offset, c0, cb, conclusive=conclusive, cost=table)
 
 
 def phase_warning(check: PhaseCheck) -> str | None:

@@ -225,4 +225,5 @@ def check_mosaic_phase(rig: Rig, *, exposure_s: float, gain: float = 1.0) -> dic
                                           "inconclusive: the scene is too uniform across bands; "
                                           "use a coloured target"),
         "layout": layout.describe(), "elapsed_ms": round(1e3 * (time.perf_counter() - t0), 1),
+        "cost_map": [list(row) for row in res.cost],  # cost of every origin shift (the phase cost map)
     }

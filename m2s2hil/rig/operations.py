@@ -47,6 +47,7 @@ class RigOps:
         self._lit: frozenset[int] | None = None  # None: unknown (start, after a fault)
         self._pose: dict[str, float | None] = dict.fromkeys(AXIS_ROLES)
         self._moved_at = -1e18  # clock time the last move ended
+        self._heading: dict[str, tuple[float, float]] = {}  # start_move's (start, target) per axis
         self.lens_capped = False
 
     # -- state -----------------------------------------------------------------------
@@ -71,6 +72,7 @@ class RigOps:
             self._on_since.clear()  # a lamp may have dropped out: warm it up again
         if pose:
             self._pose = dict.fromkeys(AXIS_ROLES)
+            self._heading.clear()
 
     # -- lamps -----------------------------------------------------------------------
     def set_lamps(self, channels: frozenset[int]) -> bool:
@@ -102,7 +104,18 @@ class RigOps:
         if cur is not None and abs(cur - target) <= tol / 2:
             return False
         self._pose[role] = None
-        actual = float(self.axis(role).move_to(target, wait=True))
+        ax = self.axis(role)
+        heading = self._heading.pop(role, None)
+        finish = getattr(ax, "finish_move", None)
+        if heading is not None and abs(heading[1] - target) <= tol / 2 and finish is not None:
+            actual = float(finish(heading[0], target))  # started by start_move: wait, verify
+        else:
+            if heading is not None and finish is not None:
+                # A guess that was wrong (e.g. a frame retried): let that move end first, so
+                # this one is watched from where the axis stands.
+                with contextlib.suppress(MoveNotVerified):
+                    finish(*heading)
+            actual = float(ax.move_to(target, wait=True))
         if abs(actual - target) > tol:
             raise MoveNotVerified(
                 f"read back {actual:.4f} deg after moving to {target:.4f} deg (tolerance {tol} deg)",
@@ -122,7 +135,10 @@ class RigOps:
         if cur is not None and abs(cur - target) <= tol / 2:
             return False
         self._pose[role] = None
-        self.axis(role).move_to(target, wait=False)
+        ax = self.axis(role)
+        start = float(ax.position())
+        ax.move_to(target, wait=False)
+        self._heading[role] = (start, target)
         return True
 
     def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[AxisRole]:
@@ -206,6 +222,7 @@ class RigOps:
                     self.rig.axis(r).position()  # re-read from the controller; the retried move verifies
         # Homing may move every axis on the controller: trust no remembered position.
         self._pose = dict.fromkeys(AXIS_ROLES)
+        self._heading.clear()
         return roles
 
     # -- safe state ------------------------------------------------------------------

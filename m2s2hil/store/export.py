@@ -14,6 +14,18 @@ raw values, m2s2hil.store.export_hf) or as a Zarr store (m2s2hil.store.zarr_expo
 - ``metadata/<session_id>.json``: what the release lacks: band centres, FWHM, the 4×4
   mosaic layout (band index per position, 0-based), bit depth, the 8-bit mapping, the
   sweep, rig digest, software version, and the master darks (``metadata/<session_id>/``).
+- ``HILmasks/<same path>``: the simulator's truth label map of a frame captured on the
+  simulated rig (8-bit PNG, label i = ``class_names[i]`` of the JSON, 0 = background), and
+  ``HILlabels/<same path>``: the twin's projected labels (role ``projected_labels``) where
+  the frame has them; the CSV names them (``mask_file``, ``labels_file``).
+- A synthetic session (``m2s2hil synth``) goes beside it, by the same satellite/build/
+  elevation/``k`` path: ``Synthetic/<Satellite>/b<N>/e<N>/rgb_<k>.png`` (the RGB render),
+  ``band<BB>_<k>.png`` (the render lit with band BB's colour, 01..10 as the paper numbers
+  bands) and ``mask_<k>.png`` (the material mask), ``e3`` for the synthetic-only elevation.
+- ``metadata/pairs.csv``: every synthetic view with the HIL frames of the same pose
+  (satellite, build, elevation, nominal azimuth), one row per (view, HIL frame), rebuilt
+  from every session CSV under ``out`` after each export, so the order of exports does not
+  matter.
 
 ``k`` is the capture index within its folder: the azimuth index (0..35 for 10° steps,
 azimuth = start + k·step), plus ``n_azimuths · f`` for the f-th extra frame at a pose
@@ -59,8 +71,18 @@ CSV_COLUMNS = (
     "session_id", "event_id", "satellite", "build", "elevation", "lighting", "lighting_dataset", "k",
     "azimuth_index", "frame", "nominal_azimuth_deg", "azimuth_deg", "turntable_readback_deg", "tilt_deg",
     "tilt_readback_deg", "exposure_s", "gain", "temperature_c", "dark_id", "timestamp", "bit_depth",
-    "processing_method", "raw_sha256",
+    "processing_method", "raw_sha256", "domain", "mask_file", "labels_file",
 )
+SYNTH_COLUMNS = (
+    "file", "mask_file", "band_files", "session_id", "event_id", "domain", "satellite", "build", "elevation",
+    "k", "azimuth_index", "nominal_azimuth_deg", "azimuth_deg", "tilt_deg", "light", "exposure", "mockup",
+)
+PAIR_COLUMNS = (
+    "satellite", "build", "elevation", "nominal_azimuth_deg", "synthetic_file", "synthetic_mask_file",
+    "hil_file", "hil_mask_file", "hil_labels_file", "lighting", "synthetic_session_id", "hil_session_id",
+)
+MASK_ROLE, LABELS_ROLE = "truth_labels", "projected_labels"  # a frame's label files (extra roles)
+LABEL_FOLDERS = ((MASK_ROLE, "HILmasks", "mask_file"), (LABELS_ROLE, "HILlabels", "labels_file"))
 
 
 class ExportError(UsageError):
@@ -125,7 +147,60 @@ def _row(store: SessionStore, fr: FrameRecord, n_az: int) -> dict[str, Any]:
         "bit_depth": m.get("bit_depth", store.rig.camera.model.bit_depth),
         "processing_method": m.get("processing_method", store.sweep.processing),
         "raw_sha256": fr.files["raw"].sha256,
+        "domain": "hil",
     }
+
+
+def _synthetic_row(store: SessionStore, fr: FrameRecord, n_az: int) -> dict[str, Any]:
+    cat = load_catalog()
+    ev, m = fr.meta["event"], fr.meta
+    syn = m.get("synthetic", {})
+    return {
+        "session_id": store.session_id, "event_id": fr.event_id, "domain": "synthetic",
+        "satellite": cat.satellites[store.sweep.satellite].name, "build": store.sweep.build,
+        "elevation": ev["elevation"], "k": _k(ev, n_az), "azimuth_index": ev["azimuth_index"],
+        "nominal_azimuth_deg": ev["nominal_azimuth_deg"], "azimuth_deg": ev["azimuth_deg"],
+        "tilt_deg": ev["tilt_deg"], "light": syn.get("light", ""), "exposure": syn.get("exposure", ""),
+        "mockup": syn.get("mockup", ""),
+    }
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def write_pairs(out: Path) -> Path | None:
+    """``metadata/pairs.csv`` from every session CSV under ``out`` (module docstring); None
+    when ``out`` holds no synthetic view."""
+    syn: dict[tuple, list[dict]] = {}
+    hil: dict[tuple, list[dict]] = {}
+    for p in sorted((out / "metadata").glob("*.csv")):
+        if p.name == "pairs.csv":
+            continue
+        for r in _read_csv(p):
+            try:
+                az = round(float(r["nominal_azimuth_deg"])) % 360
+                key = (r["satellite"], r["build"], r["elevation"], az)
+            except (KeyError, ValueError):
+                continue
+            (syn if r.get("domain") == "synthetic" else hil).setdefault(key, []).append(r)
+    if not syn:
+        return None
+    rows = []
+    for key in sorted(syn):
+        for s in syn[key]:
+            for h in hil.get(key, [{}]):  # a view without its HIL frame keeps a row (empty HIL side)
+                rows.append({
+                    "satellite": key[0], "build": key[1], "elevation": key[2], "nominal_azimuth_deg": key[3],
+                    "synthetic_file": s["file"], "synthetic_mask_file": s["mask_file"],
+                    "hil_file": h.get("file", ""), "hil_mask_file": h.get("mask_file", ""),
+                    "hil_labels_file": h.get("labels_file", ""), "lighting": h.get("lighting", ""),
+                    "synthetic_session_id": s["session_id"], "hil_session_id": h.get("session_id", ""),
+                })
+    target = out / "metadata" / "pairs.csv"
+    write_text_atomic(target, _csv(rows, PAIR_COLUMNS))
+    return target
 
 
 def _csv(rows: list[dict], columns: tuple[str, ...]) -> str:
@@ -208,6 +283,12 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     b = f"b{int(store.sweep.build[1:])}"
     n_az = len(store.sweep.azimuths())
     bits = store.rig.camera.model.bit_depth
+    if store.kind == "synthetic":
+        if layout != "m2s2":
+            from m2s2hil.store.export_synthetic import export_synthetic
+
+            return export_synthetic(store, out, layout, frames, overwrite=overwrite)
+        return _export_synthetic_m2s2(store, out, frames, n_az, overwrite=overwrite)
     rows = [_row(store, fr, n_az) for fr in frames]
 
     def rel_name(r: dict) -> str:
@@ -228,22 +309,33 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
         result.images = len(frames)
     else:
         targets: list[tuple[Path, Path]] = []
-        for r in rows:
+        labels: list[tuple[FrameRecord, str, Path]] = []  # (frame, role, target): masks, projected labels
+        for fr, r in zip(frames, rows, strict=True):
             sub = Path(sat_name) / b / f"e{int(r['elevation'][1:])}" / rel_name(r)
             targets.append((out / "HIL" / sub, out / "HIL16" / sub))
             r["file"] = f"HIL/{sub.as_posix()}"
             r["file16"] = f"HIL16/{sub.as_posix()}"
+            for role, folder, col in LABEL_FOLDERS:
+                if role in fr.files:
+                    labels.append((fr, role, out / folder / sub))
+                    r[col] = f"{folder}/{sub.as_posix()}"
         meta_csv = out / "metadata" / f"{store.session_id}.csv"
-        _refuse_clash([p for t in targets for p in t] + [meta_csv, meta_json] + [t for _, t in darks],
-                      overwrite)
+        _refuse_clash([p for t in targets for p in t] + [t for _, _, t in labels] + [meta_csv, meta_json]
+                      + [t for _, t in darks], overwrite)
         for fr, (p8, p16) in zip(frames, targets, strict=True):
             raw, _ = store.read_raw(fr.event_id)
             write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))
             write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
             result.files += [p8, p16]
             result.images += 1
+        for fr, role, target in labels:  # stored as 8-bit PNG already: copied as they are, checked
+            write_bytes_atomic(target, store.read_file(fr.files[role]))
+            result.files.append(target)
         write_text_atomic(meta_csv, _csv(rows, ("file", "file16", *CSV_COLUMNS)))
         result.files.append(meta_csv)
+        pairs = write_pairs(out)
+        if pairs is not None:
+            result.files.append(pairs)
 
     info = _session_json(store)
     for d, dst in darks:
@@ -251,4 +343,44 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
         result.files.append(dst)
     write_text_atomic(meta_json, json.dumps(info, indent=2, sort_keys=True) + "\n")
     result.files.append(meta_json)
+    return result
+
+
+def _export_synthetic_m2s2(store: SessionStore, out: Path, frames: list[FrameRecord], n_az: int, *,
+                           overwrite: bool) -> ExportResult:
+    """A synthetic session's views beside the HIL folders (module docstring)."""
+    cat = load_catalog()
+    base = Path("Synthetic") / cat.satellites[store.sweep.satellite].name / f"b{int(store.sweep.build[1:])}"
+    rows = [_synthetic_row(store, fr, n_az) for fr in frames]
+    copies: list[tuple[FrameRecord, str, Path]] = []
+    for fr, r in zip(frames, rows, strict=True):
+        folder = base / f"e{int(r['elevation'][1:])}"
+        bands = sorted(role for role in fr.files if role.startswith("band_"))
+        if "rgb" not in fr.files or MASK_ROLE not in fr.files or not bands:
+            raise ExportError(f"synthetic frame {fr.event_id} of {store.session_id} lacks its rgb, bands "
+                              "or mask")
+        names = [("rgb", f"rgb_{r['k']}.png"), (MASK_ROLE, f"mask_{r['k']}.png")]
+        names += [(role, f"band{int(role[5:]) + 1:02d}_{r['k']}.png") for role in bands]
+        for role, name in names:
+            copies.append((fr, role, out / folder / name))
+        r["file"] = (folder / names[0][1]).as_posix()
+        r["mask_file"] = (folder / names[1][1]).as_posix()
+        r["band_files"] = " ".join((folder / n).as_posix() for _, n in names[2:])
+    meta_csv = out / "metadata" / f"{store.session_id}.csv"
+    meta_json = out / "metadata" / f"{store.session_id}.json"
+    _refuse_clash([t for _, _, t in copies] + [meta_csv, meta_json], overwrite)
+    result = ExportResult(layout="m2s2", out=out, images=len(frames))
+    for fr, role, target in copies:  # PNGs as stored (checksums checked on read)
+        write_bytes_atomic(target, store.read_file(fr.files[role]))
+        result.files.append(target)
+    write_text_atomic(meta_csv, _csv(rows, SYNTH_COLUMNS))
+    info = {**_session_json(store), "domain": "synthetic",
+            "class_names": frames[0].meta.get("class_names", []),
+            "synthetic": {k: v for k, v in frames[0].meta.get("synthetic", {}).items() if k != "exposure"},
+            "elevations_deg": {r["elevation"]: r["tilt_deg"] for r in rows}}
+    write_text_atomic(meta_json, json.dumps(info, indent=2, sort_keys=True) + "\n")
+    result.files += [meta_csv, meta_json]
+    pairs = write_pairs(out)
+    if pairs is not None:
+        result.files.append(pairs)
     return result

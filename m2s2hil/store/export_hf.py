@@ -20,12 +20,20 @@ Columns of each row (one per frame):
   the same in every row of a session, so a row is self-describing after shuffling.
 - the m2s2 CSV columns (satellite, build, elevation, lighting, azimuth, exposure, pose
   read-backs, dark id, ...).
+- ``mask``: the simulator's truth label map (8-bit PNG, label i = ``class_names[i]``) and
+  ``labels``: the twin's projected labels, where the frame has them (else null).
+
+A synthetic session (``m2s2hil synth``) goes to ``data/synthetic-<session_id>.parquet``, the
+card's ``synthetic`` configuration (m2s2hil.store.export_synthetic): ``rgb``, ``bands`` (ten
+images), ``mask`` and the pose columns the HIL rows pair with (satellite, build, elevation,
+nominal_azimuth_deg).
 
 Load it offline with ``datasets.load_dataset(out, split="train")``.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import tempfile
@@ -49,6 +57,10 @@ configs:
   data_files:
   - split: train
     path: data/train-*.parquet
+- config_name: synthetic
+  data_files:
+  - split: train
+    path: data/synthetic-*.parquet
 ---
 # M2S2 hardware-in-the-loop captures
 
@@ -56,6 +68,10 @@ Written by `m2s2hil export --layout hf`. One row per frame.
 
 - `raw` (uint16, H x W): the {bits}-bit sensor values, exact. Use this for training.
 - `image`: an 8-bit view (`raw >> {shift}`, three identical channels), for browsing only.
+- `mask`, `labels`: the simulator's truth label map and the twin's projected labels, where
+  present (else null).
+- `load_dataset("{name}", "synthetic")`: the synthetic domain (RGB render, ten band
+  renders, mask), paired with these rows by satellite, build, elevation and nominal azimuth.
 - `bands_nm`, `fwhm_nm`: the {n} band centres and widths in band order;
   `mosaic_layout`: the band index at each position of the {p}x{p} filter cell (row-major,
   from the top-left pixel), so band b of pixel (y, x) is `mosaic_layout[y % {p}][x % {p}]`.
@@ -87,6 +103,8 @@ def _features(h: int, w: int, n_bands: int, period: int) -> Any:
         "bands_nm": Sequence(Value("float32"), length=n_bands),
         "fwhm_nm": Sequence(Value("float32"), length=n_bands),
         "mosaic_layout": Array2D(shape=(period, period), dtype="int8"),
+        "mask": Image(),
+        "labels": Image(),
     }
     for c in CSV_COLUMNS:
         cols[c] = Value("int32") if c in numeric else Value("float64") if c in floats else Value("string")
@@ -100,11 +118,8 @@ def _value(v: Any) -> Any:
 def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: list[dict], *,
               overwrite: bool) -> list[Path]:
     """Write ``data/train-<session>.parquet`` and the card (see the module docstring)."""
-    try:
-        import datasets
-    except ImportError:
-        raise HfExportError("the hf export needs the datasets library: pip install 'm2s2hil[hf]'") from None
-    from m2s2hil.store.export import mosaic_png8
+    require_datasets()
+    from m2s2hil.store.export import LABELS_ROLE, MASK_ROLE, mosaic_png8
 
     m = store.rig.camera.model
     target = out / "data" / f"train-{store.session_id}.parquet"
@@ -120,12 +135,30 @@ def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: l
             ex = {"raw": raw, "image": {"bytes": encode_png(mosaic_png8(raw, m.bit_depth)), "path": None},
                   "bands_nm": list(m.bands_nm), "fwhm_nm": list(m.fwhm_nm), "mosaic_layout": layout,
                   **{c: _value(r[c]) for c in features if c in r}}
+            for col, role in (("mask", MASK_ROLE), ("labels", LABELS_ROLE)):  # PNGs as stored
+                ex[col] = {"bytes": store.read_file(fr.files[role]), "path": None} if role in fr.files \
+                    else None
             for c in features:
                 batch[c].append(ex.get(c))
             if len(batch["raw"]) == size or i == len(frames) - 1:
                 yield batch
                 batch = {c: [] for c in features}
 
+    write_parquet(out, target, features, batches())
+    card = out / "README.md"
+    write_text_atomic(card, CARD.format(bits=m.bit_depth, shift=m.bit_depth - 8, n=m.n_bands, p=m.period,
+                                        name=out.name or str(out), full=m.full_scale))
+    return [target, card]
+
+
+def require_datasets() -> None:
+    if importlib.util.find_spec("datasets") is None:
+        raise HfExportError("the hf export needs the datasets library: pip install 'm2s2hil[hf]'")
+
+
+def write_parquet(out: Path, target: Path, features: Any, batches: Iterator[dict[str, list]]) -> None:
+    """``batches`` through datasets' encoding into ``target``, written beside and renamed."""
+    import datasets
     import pyarrow.parquet as pq
 
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -136,7 +169,7 @@ def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: l
         try:
             # A few frames at a time through datasets' own encoding (the features go into the
             # Parquet schema, so load_dataset restores them); memory stays at one batch.
-            for batch in batches():
+            for batch in batches:
                 table = datasets.Dataset.from_dict(batch, features=features).data.table
                 if writer is None:
                     writer = pq.ParquetWriter(str(part), table.schema, compression="zstd")
@@ -150,8 +183,4 @@ def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: l
         fsync_dir(target.parent)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    card = out / "README.md"
-    write_text_atomic(card, CARD.format(bits=m.bit_depth, shift=m.bit_depth - 8, n=m.n_bands, p=m.period,
-                                        name=out.name or str(out), full=m.full_scale))
-    return [target, card]
 

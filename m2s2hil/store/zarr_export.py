@@ -12,7 +12,10 @@ store that ``xarray.open_zarr`` opens lazily:
   (cell_y, cell_x) = band index at each position of the filter cell; the camera model in
   the attributes;
 - ``labels`` (frame, y, x) uint8: the simulator's ground truth where the session has it (0
-  elsewhere, ``has_labels`` false);
+  elsewhere, ``has_labels`` false); ``projected_labels`` the same for the twin's projected
+  labels (``has_projected_labels``);
+- group ``synthetic``: the synthetic sessions' views (m2s2hil.store.export_synthetic), with
+  the same pose coordinates, so the domains pair by pose;
 - group ``darks``: ``master`` (dark, y, x) with ``dark_key``, exposure and gain.
 
 More sessions append along ``frame`` (the same sensor size required). ``m2s2hil evaluate
@@ -38,6 +41,7 @@ if TYPE_CHECKING:
     from m2s2hil.store.session import SessionStore
 
 REF = "#zarr:"
+PROJECTED = "projected_labels"  # the twin's label map of a frame (extra file role)
 
 
 class ZarrExportError(UsageError):
@@ -67,16 +71,18 @@ def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, 
     def raw_of(event_id: str) -> np.ndarray:
         return store.read_raw(event_id)[0]
 
-    def labels_of(event_id: str) -> np.ndarray:
+    def labels_of(event_id: str, role: str = "truth_labels") -> np.ndarray:
         from m2s2hil.store.frame_files import decode_image
 
         fr = store.frame(event_id)
-        if "truth_labels" not in fr.files:
+        if role not in fr.files:
             return np.zeros(shape, np.uint8)
-        return decode_image(store.read_file(fr.files["truth_labels"])).astype(np.uint8)
+        return decode_image(store.read_file(fr.files[role])).astype(np.uint8)
 
     raw = da.stack([da.from_delayed(delayed(raw_of)(fr.event_id), shape, np.uint16) for fr in frames])
     labels = da.stack([da.from_delayed(delayed(labels_of)(fr.event_id), shape, np.uint8) for fr in frames])
+    projected = da.stack([da.from_delayed(delayed(labels_of)(fr.event_id, PROJECTED), shape, np.uint8)
+                          for fr in frames])
     cat = load_catalog()
 
     def col(fn: Callable[[FrameRecord], Any]) -> np.ndarray:
@@ -111,12 +117,13 @@ def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, 
         "processing_method": ("frame", col(lambda fr: str(fr.meta.get("processing_method")
                                                          or store.sweep.processing))),
         "has_labels": ("frame", col(lambda fr: "truth_labels" in fr.files)),
+        "has_projected_labels": ("frame", col(lambda fr: PROJECTED in fr.files)),
         "wavelength_nm": ("band", np.asarray(m.bands_nm, np.float32)),
         "fwhm_nm": ("band", np.asarray(m.fwhm_nm, np.float32)),
         "mosaic_layout": (("cell_y", "cell_x"), np.asarray(m.layout, np.int8)),
     }
-    ds = xr.Dataset({"raw": (("frame", "y", "x"), raw), "labels": (("frame", "y", "x"), labels)},
-                    coords=coords)
+    ds = xr.Dataset({"raw": (("frame", "y", "x"), raw), "labels": (("frame", "y", "x"), labels),
+                     "projected_labels": (("frame", "y", "x"), projected)}, coords=coords)
     ds.attrs["camera"] = json.dumps(m.model_dump(mode="json"))
     ds.attrs["description"] = ("M2S2 hardware-in-the-loop raw mosaics (m2s2hil export --layout zarr); "
                                "band b of pixel (y, x) is mosaic_layout[y % n, x % n]")
@@ -134,20 +141,26 @@ def export_zarr(store: SessionStore, out: str | Path) -> int:
     darks = store.darks()
     dark_keys = {d.dark_id: f"{store.session_id}/{d.dark_id}" for d in darks}
     exists = (out / "zarr.json").is_file()
+    fresh_root = False  # a store holding only the synthetic group so far
     if exists:
         old = xr.open_zarr(out, consolidated=False)
+        fresh_root = "raw" not in old.variables
+    if exists and not fresh_root:
         if store.session_id in set(old["session_id"].values.tolist()):
             raise ZarrExportError(f"{out} already holds session {store.session_id}")
         if (old.sizes["y"], old.sizes["x"]) != (m.height, m.width):
             raise ZarrExportError(f"{out} holds {old.sizes['x']}x{old.sizes['y']} frames, "
                                   f"session {store.session_id} has {m.width}x{m.height}")
         old.close()
-    elif out.exists():
+    elif out.exists() and not fresh_root:
         raise ZarrExportError(f"{out} exists and is not a Zarr store")
     ds = _frames_dataset(store, xr, da, dark_keys)
-    encoding = {"raw": {"chunks": (1, m.height, m.width)}, "labels": {"chunks": (1, m.height, m.width)}}
+    chunk = {"chunks": (1, m.height, m.width)}
+    encoding = {"raw": chunk, "labels": chunk, "projected_labels": chunk}
     with dask.config.set(scheduler="synchronous"):  # one frame in memory at a time
-        if exists:
+        if fresh_root:
+            ds.to_zarr(out, mode="a", encoding=encoding, zarr_format=3, consolidated=False)
+        elif exists:
             ds.to_zarr(out, append_dim="frame", zarr_format=3, consolidated=False)
         else:
             ds.to_zarr(out, mode="w-", encoding=encoding, zarr_format=3, consolidated=False)

@@ -51,6 +51,7 @@ from m2s2hil.analysis.evaluation.jobs import EvaluationError, FrameJob
 from m2s2hil.analysis.evaluation.loading import load_cube, load_truth
 from m2s2hil.analysis.evaluation.options import EvalOptions, cached_segmenter, check_segmenters, mtc_predictor
 from m2s2hil.analysis.evaluation.parallel import dask_client, describe, map_ordered
+from m2s2hil.analysis.metrics.band_stability import band_stability
 from m2s2hil.analysis.metrics.mtc import mtc
 from m2s2hil.analysis.metrics.scores import score_clusters
 from m2s2hil.analysis.segmenters.spectral import foreground_mask
@@ -213,6 +214,10 @@ def band_report(records: list[dict[str, Any]], options: EvalOptions, bands_nm: S
         pca_standardized=sel.standardize,
         loadings_table=sel.loadings_table(list(bands_nm) if len(bands_nm) == sel.loadings.shape[1] else None),
     )
+    try:  # how often the pick recurs when the images are resampled (metrics.band_stability)
+        report["pca_stability"] = band_stability(samples).as_dict()
+    except Exception as exc:  # a side result of a side result: reported, never fatal
+        report["pca_stability_error"] = _error(exc)
     return report
 
 

@@ -5,7 +5,8 @@ Segmenter names: every registered name (``create_segmenter``) plus ``spectral-sm
 multispectral segmenter with its RGB counterpart (``RGB_COUNTERPART``).
 
 mTC predictors (``mtc_predictor``): ``mtc_mode="labels"`` uses the segmenter's full label
-map, each shifted prediction aligned to the base one; ``"binary"`` is the paper's HIL
+map, each shifted prediction aligned to the base one (a sampling segmenter through
+``metrics.mtc.ResampledFit``: each prediction fits its own sample); ``"binary"`` is the paper's HIL
 setting (bands 5, 9, 10 segmented one by one and fused as foreground/background; RGB
 segmenters: their prediction's foreground). For SAM the binary predictor is the paper's exactly:
 ``SamSegmenter`` in binary mode over the selected bands with top-k = the image's number of
@@ -26,7 +27,7 @@ from typing import Any, Literal
 import numpy as np
 
 from m2s2hil.analysis.bands import PAPER_BANDS
-from m2s2hil.analysis.metrics.mtc import band_fused_predictor
+from m2s2hil.analysis.metrics.mtc import ResampledFit, band_fused_predictor
 from m2s2hil.analysis.segmenters.registry import Segmenter, create_segmenter
 from m2s2hil.analysis.segmenters.sam import SamSegmenter
 from m2s2hil.errors import UsageError
@@ -134,6 +135,10 @@ def mtc_predictor(
 ) -> tuple[Callable, bool]:
     """(predictor, align) for ``analysis.metrics.mtc`` (see the module docstring)."""
     if mode == "labels":
+        # A sampling segmenter (SpectralSegmenter) fits a new sample per shift; otherwise a shift
+        # refits the same pixels and mTC only tests order invariance (metrics.mtc, issue 23).
+        if hasattr(seg, "sample_size") and hasattr(seg, "seed"):
+            return ResampledFit(seg), True
         return seg.segment, True
     if is_rgb(name) or n_bands < max(bands):
         return (lambda c: (seg.segment(c) > 0).astype(np.int64)), False

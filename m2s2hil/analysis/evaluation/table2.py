@@ -401,6 +401,17 @@ def significance_markdown(
     return "\n".join(lines) + "\n"
 
 
+def _band_stability_note(st: Mapping[str, Any] | None) -> str:
+    """The PCA pick's bootstrap over images (``metrics.band_stability``), for the band note."""
+    if not st:
+        return ""
+    sets = "; ".join(f"{', '.join(map(str, x['bands']))}: {x['share']:.0%}" for x in st["set_frequency"][:3])
+    freq = sorted(((int(k), v) for k, v in st["band_frequency"].items() if v > 0), key=lambda kv: -kv[1])
+    bands = ", ".join(f"{k}: {v:.0%}" for k, v in freq)
+    return (f" Stability: that set recurs in {st['pick_frequency']:.0%} of {st['n_boot']} bootstrap "
+            f"resamples of the images (most frequent sets {sets}; each band chosen in {bands}).")
+
+
 def notes(result: EvaluationResult, rows: Sequence[Table2Row]) -> list[str]:
     """The report's reading notes: what was compared, how, and what is missing."""
     o = result.options
@@ -449,6 +460,7 @@ def notes(result: EvaluationResult, rows: Sequence[Table2Row]) -> list[str]:
                 f"Band selection: PCA on these images ({b.get('pca_images')} images' foreground spectra, "
                 f"standardised) picks bands {pca}; the paper's PCA picked 5, 9, 10. The binary mTC "
                 f"{'used' if b.get('mtc_binary') else 'would use'} bands {mtc_b} ({used} bands)."
+                + _band_stability_note(b.get("pca_stability"))
             )
         else:
             out.append(f"Band selection: PCA could not run ({b.get('pca_error', 'no pixels')}); "

@@ -297,7 +297,8 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
                 flags = f"<br><span class=flags>{_esc(', '.join(v.flags))}</span>" if v.flags else ""
                 star = "†" if v.computed else ""
                 out.append(
-                    f"<figure class={cls} id='frame-{_esc(v.event_id)}' title='{_esc(v.event_id)}'>{img}<figcaption>{az}{extra} · "
+                    f"<figure class={cls} id='frame-{_esc(v.event_id)}' title='{_esc(v.event_id)}'>"
+                    f"{img}<figcaption>{az}{extra} · "
                     f"QC {_score_text(v.score)}{star}{flags}</figcaption></figure>"
                 )
             out.append("</div>")

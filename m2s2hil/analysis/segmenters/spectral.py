@@ -64,6 +64,7 @@ from threadpoolctl import threadpool_limits
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.analysis.segmenters.normalise import Reliability, normalise_cube, reliability
 from m2s2hil.catalog import load_catalog
 
 CovarianceType = Literal["full", "tied", "diag", "spherical"]
@@ -81,6 +82,8 @@ class SpectralSegmentation:
     threshold: float  # foreground threshold as band energy (NaN if energy was constant)
     bic: dict[int, float] = field(default_factory=dict)  # components -> BIC on the sample
     n_foreground: int = 0
+    unreliable: np.ndarray | None = None  # bool (H, W): saturated or near-black, kept out of the fit
+    bands: tuple[int, ...] = ()  # bands the features used (clipped bands left out); () = all
 
 
 ForegroundRule = Literal["backdrop", "otsu"]
@@ -148,6 +151,33 @@ def homogeneous_pixels(
     return inner & (np.arccos(np.clip(cos_min, -1.0, 1.0)) < limit)
 
 
+def relabel_saturated(labels: np.ndarray, cube: np.ndarray, clipped: np.ndarray, saturated: np.ndarray
+                      ) -> np.ndarray:
+    """Saturated foreground pixels get the material whose mean spectrum (over the reliable pixels)
+    is nearest in spectral angle on the pixel's *unclipped* bands (a clipped value is only a lower
+    bound); with fewer than two unclipped bands, the label of the nearest reliable pixel."""
+    out = labels.copy()
+    n = int(labels.max())
+    good = (labels > 0) & ~saturated
+    if n == 0 or not good.any():
+        return out
+    means = np.stack([cube[:, (labels == k) & good].mean(axis=1) if ((labels == k) & good).any()
+                      else np.zeros(cube.shape[0]) for k in range(1, n + 1)])  # (n, bands)
+    sel = saturated & (labels > 0)
+    x = cube[:, sel].T  # (m, bands)
+    ok = ~clipped[:, sel].T  # (m, bands) bands that held
+    num = (x * ok) @ means.T
+    den = np.sqrt(((x * ok) ** 2).sum(axis=1, keepdims=True) * (ok @ (means**2).T))
+    best = (num / np.maximum(den, 1e-12)).argmax(axis=1) + 1
+    few = ok.sum(axis=1) < 2
+    if few.any():  # too little shape left: the nearest reliable pixel's material
+        _, (iy, ix) = ndimage.distance_transform_edt(~good, return_indices=True)
+        ys, xs = np.nonzero(sel)
+        best[few] = labels[iy[ys[few], xs[few]], ix[ys[few], xs[few]]]
+    out[sel] = best
+    return out
+
+
 def majority_in_superpixels(labels: np.ndarray, superpixels: np.ndarray) -> np.ndarray:
     """Replace each label by the most frequent label of its superpixel (0 in ``superpixels`` = untouched)."""
     out = labels.copy()
@@ -194,6 +224,9 @@ class SpectralSegmenter:
         features: Features = "unit",
         weight_prior: float = 1e-3,
         n_materials: int | None = None,
+        robust: bool = True,
+        snr_min: float = 10.0,
+        white: object | None = None,
     ) -> None:
         if not 1 <= min_materials <= max_materials:
             raise AnalysisInputError(
@@ -243,6 +276,11 @@ class SpectralSegmenter:
             raise AnalysisInputError("brightness_weight", f"must be ≥ 0, got {brightness_weight}")
         if foreground not in ("backdrop", "otsu"):
             raise AnalysisInputError("foreground", f"expected 'backdrop' or 'otsu', got {foreground!r}")
+        if not snr_min >= 0:
+            raise AnalysisInputError("snr_min", f"must be ≥ 0, got {snr_min}")
+        self.robust = bool(robust)
+        self.snr_min = float(snr_min)
+        self.white = None if white is None else np.asarray(white, dtype=np.float64)
         self.noise_scaled = bool(noise_scaled)
         self.brightness_weight = float(brightness_weight)
         self.foreground: ForegroundRule = foreground
@@ -330,16 +368,19 @@ class SpectralSegmenter:
             keep[int(weight.argmax())] = True
         return member[:, keep]
 
-    def analyse(self, cube: object) -> SpectralSegmentation:
-        """Segment ``cube`` and return the labels with the fit's diagnostics."""
+    def analyse(self, cube: object, *, saturated: np.ndarray | None = None) -> SpectralSegmentation:
+        """Segment ``cube`` and return the labels with the fit's diagnostics; ``saturated``: the
+        processor's clipping mask (H, W), used with the segmenter's own plateau test."""
         arr = as_cube(cube)
         if self.blas_threads is None:
-            return self._analyse(arr)
+            return self._analyse(arr, saturated)
         with threadpool_limits(limits=self.blas_threads):
-            return self._analyse(arr)
+            return self._analyse(arr, saturated)
 
-    def _analyse(self, arr: np.ndarray) -> SpectralSegmentation:
+    def _analyse(self, arr: np.ndarray, saturated: np.ndarray | None = None) -> SpectralSegmentation:
         h, w = arr.shape[1:]
+        if self.white is not None:
+            arr = normalise_cube(arr, white=self.white)
         fg, threshold = foreground_mask(arr, self.foreground)
         labels = np.zeros((h, w), dtype=np.int32)
         n_fg = int(fg.sum())
@@ -348,6 +389,10 @@ class SpectralSegmenter:
         if arr.shape[0] == 1:  # one band has no spectral shape: the foreground is one material
             labels[fg] = 1
             return SpectralSegmentation(labels, 1, threshold, {}, n_fg)
+        rel: Reliability | None = None
+        if self.robust:  # clipped bands out of the features, unreliable pixels out of the fit
+            rel = reliability(arr, fg, snr_min=self.snr_min, saturated=saturated)
+            arr = arr[rel.bands]
         unit = features_of(arr, self.features)
         energy = np.linalg.norm(arr, axis=0)
         if self.brightness_weight > 0:  # albedo cue: achromatic materials differ mostly in brightness
@@ -364,6 +409,10 @@ class SpectralSegmenter:
                 ref = float(np.median(energy[fg]))
                 scale = np.sqrt(np.maximum(ref / np.maximum(energy, 1e-12), 1.0))
             fit = homogeneous_pixels(unit, fg, self.homogeneity_deg, scale)
+        if rel is not None:
+            fit = fit & ~rel.unreliable
+            if int(fit.sum()) < MIN_FIT_PIXELS:
+                fit = fg & ~rel.unreliable
         if int(fit.sum()) < MIN_FIT_PIXELS:  # too few clean pixels (a tiny or noisy object): use them all
             fit = fg
         pool = feats[:, fit].T
@@ -399,6 +448,8 @@ class SpectralSegmenter:
         rank = np.empty(n_groups, dtype=np.int32)
         rank[order] = np.arange(1, n_groups + 1, dtype=np.int32)
         labels[fg] = rank[comp]
+        if rel is not None and rel.saturated.any():
+            labels = relabel_saturated(labels, arr, rel.clipped[rel.bands], rel.saturated)
         if self.smooth:
             shown = np.zeros_like(unit)
             shown[:, fg] = unit[:, fg]
@@ -406,4 +457,7 @@ class SpectralSegmenter:
                       start_label=1)
             labels = majority_in_superpixels(labels, sp).astype(np.int32)
         n_used = int(np.count_nonzero(np.bincount(labels.ravel())[1:]))
-        return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)
+        if rel is None:
+            return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)
+        return SpectralSegmentation(labels, n_used, threshold, bic, n_fg, rel.unreliable,
+                                    tuple(int(b) for b in rel.bands))

@@ -16,7 +16,7 @@ import logging
 from collections.abc import Iterator
 from typing import Literal
 
-from fastapi import APIRouter, HTTPException, Path
+from fastapi import APIRouter, HTTPException, Path, Request
 
 from m2s2hil.daemon.errors import Conflict
 from m2s2hil.daemon.move_targets import MoveTargets
@@ -105,7 +105,7 @@ def _moved(rig: Rig, role: AxisName, target: float) -> dict:
 
 @router.post("/rig/axes/{axis}/jog", status_code=202, response_model=cm.MoveOut,
              responses={**CONFLICT, **CROSS_SITE})
-def jog(mg: Manager, body: cm.Jog, axis: AxisName = AxisPath) -> dict:
+def jog(request: Request, mg: Manager, body: cm.Jog, axis: AxisName = AxisPath) -> dict:
     """Move by ``delta_deg`` from the target of the manual move still in force, else from the
     read-back (refused beyond the soft limits): jogs sent together end at their sum."""
     targets = mg.guard.targets
@@ -116,12 +116,13 @@ def jog(mg: Manager, body: cm.Jog, axis: AxisName = AxisPath) -> dict:
         targets.commanded(axis, target)
         moved = _moved(rig, axis, target)
     log.info("manual: %s jog %+.3f° → %.3f°", axis, body.delta_deg, target)
+    request.state.activity = f"{axis} jog {body.delta_deg:+g}° → {target:.3f}°"  # the activity log's words
     return moved
 
 
 @router.post("/rig/axes/{axis}/goto", status_code=202, response_model=cm.MoveOut,
              responses={**CONFLICT, **CROSS_SITE})
-def go_to(mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
+def go_to(request: Request, mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
     """Move to ``position_deg`` (refused beyond the soft limits)."""
     targets = mg.guard.targets
     with (mg.guard.manual_access() as rig, _forget_on_error(targets, axis),
@@ -130,6 +131,7 @@ def go_to(mg: Manager, body: cm.GoTo, axis: AxisName = AxisPath) -> dict:
         targets.commanded(axis, target)
         moved = _moved(rig, axis, target)
     log.info("manual: %s go to %.3f°", axis, target)
+    request.state.activity = f"{axis} go to {target:.3f}°"
     return moved
 
 
@@ -178,11 +180,12 @@ def set_origin(mg: Manager, axis: AxisName = AxisPath) -> dict:
 
 
 @router.put("/rig/lamps", response_model=cm.LampsOut, responses={**CONFLICT, **CROSS_SITE})
-def set_lamps(mg: Manager, body: cm.Lamps) -> dict:
+def set_lamps(request: Request, mg: Manager, body: cm.Lamps) -> dict:
     """A lighting preset (``{"preset": "weak"}``; ``{"preset": null}`` switches every lamp off) or
     exactly these lamps on (``{"lamps": ["bar1", "spot"]}``)."""
     with mg.guard.manual_access("switching lamps") as rig, device_errors("switching the lamps"):
         mc = ManualControl(rig)
         on = mc.set_lamps(body.lamps) if body.lamps is not None else mc.set_preset(body.preset)
     log.info("manual: lamps on: %s", clean_text(", ".join(on) or "none"))
+    request.state.activity = f"lamps on: {clean_text(', '.join(on) or 'none')}"
     return {"lamps_on": on}

@@ -19,19 +19,22 @@ from typing import Annotated, Any
 import cv2
 import numpy as np
 from fastapi import APIRouter, Query, Response
+from fastapi import Path as FPath
 from pydantic import BaseModel
 
 from m2s2hil.daemon.errors import Conflict, UnknownSession
+from m2s2hil.errors import UsageError
 from m2s2hil.processing.calibration import load_calibration
 from m2s2hil.processing.display import srgb_encode
 from m2s2hil.processing.mosaic import MosaicLayout
-from m2s2hil.processing.spectrum import dark_subtracted, reflectance, snap_region
+from m2s2hil.processing.spectrum import dark_subtracted, reflectance, snap_region, superpixel_cube
 from m2s2hil.store.frame_files import decode_tiff
 from m2s2hil.store.records import FrameRecord
 from m2s2hil.store.session import SessionStore
 
-from ..common import CONFLICT, NOT_FOUND, FrameN, Manager, SessionId
-from .state import ConsoleDep
+from ..common import CONFLICT, CROSS_SITE, NOT_FOUND, FrameN, Manager, SessionId
+from . import models as cm
+from .state import ConsoleDep, device_errors
 
 router = APIRouter(tags=["console pictures"])
 
@@ -213,8 +216,16 @@ def frame_bands(mg: Manager, session_id: SessionId, n: FrameN,
     (``scale=common``: one brightness scale for all bands)."""
     with mg.reads.reading(session_id) as store:
         fr = _frame(store, session_id, n)
-        cube = store.read_cube(fr.event_id)
-        bands = list(store.rig.camera.model.bands_nm)
+        model = store.rig.camera.model
+        if "cube" in fr.files:  # a stored cube (calibrated, or a slow method's): as stored
+            cube = store.read_cube(fr.event_id)
+        else:  # raw − dark per band: the pictures need no demosaicing method's detail
+            raw, _ = decode_tiff(store.read_file(fr.files["raw"]))
+            mosaic = np.asarray(raw, np.float32)
+            if fr.dark_id:
+                mosaic = np.clip(mosaic - np.asarray(store.load_dark(fr.dark_id), np.float32), 0.0, None)
+            cube = superpixel_cube(mosaic, MosaicLayout.from_camera(model))
+        bands = list(model.bands_nm)
     png = band_mosaic_png(np.asarray(cube, np.float32), bands, tile_px=tile, common=scale == "common")
     return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
 
@@ -228,3 +239,91 @@ def session_coverage(mg: Manager, session_id: SessionId) -> dict[str, Any]:
 
     with mg.reads.reading(session_id) as store:
         return coverage(store)
+
+
+# ----------------------------------------------------------------------------- calibration pictures
+DarkName = Annotated[str, FPath(pattern=r"^dark_[A-Za-z0-9_.+-]{1,200}$", max_length=205,
+                                description="A dark's name in the library (its files' stem).")]
+
+
+@router.get("/calibration/pictures")
+def calibration_pictures(console: ConsoleDep) -> dict[str, Any]:
+    """The calibration pictures there are to see: one per dark in the library (level map and hot
+    pixels), the white reference's uniformity per band; each with its URL and text alternative."""
+    items: list[dict[str, Any]] = []
+    try:
+        entries = console.darks.entries() if console.darks.root.is_dir() else []
+    except UsageError:
+        entries = []
+    for e in sorted(entries, key=lambda e: str(e.get("created", "")), reverse=True)[:12]:
+        name = Path(e["_sidecar"]).stem
+        what = f"dark {1e3 * float(e['exposure_s']):g} ms gain {float(e['gain']):g}, {e.get('created', '')}"
+        items.append({"kind": "dark", "title": what, "url": f"/calibration/darks/{name}/map.png",
+                      "alt": f"{what}: dark level map and hot pixels"})
+    calib, prov = _calibration(console)
+    if calib is not None and calib.white_mosaic is not None:
+        p = prov or {}
+        what = f"white reference, {p.get('lighting') or '?'}, {p.get('captured_at') or '?'}"
+        items.append({"kind": "white", "title": what, "url": "/calibration/white/uniformity.png",
+                      "alt": f"{what}: uniformity per band"})
+    return {"items": items, "empty": None if items else
+            "no darks in the library and no white reference yet: take them above"}
+
+
+def _png_response(png: bytes, alt: str) -> Response:
+    # the text alternative travels as a header too (ASCII: headers are Latin-1)
+    return Response(png, media_type="image/png",
+                    headers={"Cache-Control": "no-store", "X-Alt": alt.encode("ascii", "replace").decode()})
+
+
+@router.get("/calibration/darks/{name}/map.png", response_class=Response, responses={**PNG, **NOT_FOUND})
+def dark_map(console: ConsoleDep, name: DarkName) -> Response:
+    """A master dark of the library: its level per mosaic cell and its hot pixels."""
+    from m2s2hil.analysis.report.calibration_figures import dark_maps_png
+
+    side = console.darks.root / f"{name}.json"
+    entry = next((e for e in (console.darks.entries() if console.darks.root.is_dir() else [])
+                  if Path(e["_sidecar"]).name == side.name), None)
+    if entry is None:
+        raise UnknownSession(f"path.name: the dark library has no dark {name!r} "
+                             "(GET /calibration lists them)")
+    dark = console.darks._load(entry)  # checks the TIFF against its sidecar's sha256
+    model = console.manager.rig.config.camera.model
+    title = (f"dark {1e3 * dark.exposure_s:g} ms · gain {dark.gain:g} · {dark.n_frames} frames · "
+             f"{dark.temperature_c:.1f} °C")
+    png, alt = dark_maps_png(dark.data, model.period, title=title)
+    return _png_response(png, alt)
+
+
+@router.get("/calibration/white/uniformity.png", response_class=Response, responses={**PNG, **NOT_FOUND})
+def white_uniformity(console: ConsoleDep) -> Response:
+    """The calibration file's white reference: each band relative to its brightest block."""
+    from m2s2hil.analysis.report.calibration_figures import white_uniformity_png
+
+    calib, prov = _calibration(console)
+    if calib is None or calib.white_mosaic is None:
+        raise UnknownSession(f"no white reference in {console.calibration_path} (capture one first)")
+    model = console.manager.rig.config.camera.model
+    cube = superpixel_cube(calib.white_mosaic, _layout(model, calib))
+    title = f"white reference ({(prov or {}).get('lighting') or '?'})"
+    png, alt = white_uniformity_png(cube, list(model.bands_nm), title=title)
+    return _png_response(png, alt)
+
+
+@router.post("/calibration/phase.png", response_class=Response,
+             responses={**PNG, **CONFLICT, **CROSS_SITE})
+def phase_map(mg: Manager, console: ConsoleDep, body: cm.PhaseIn) -> Response:
+    """One frame's mosaic phase check (as ``POST /calibration/phase``) drawn as the cost of every
+    origin shift; ``X-Phase-Summary`` says the result in words."""
+    from m2s2hil.analysis.report.calibration_figures import phase_cost_png
+    from m2s2hil.rig.calibrate import check_mosaic_phase
+
+    with mg.guard.manual_access("the phase check") as rig, device_errors("the phase check"):
+        console.camera.release(rig)
+        res = check_mosaic_phase(rig, exposure_s=body.exposure_s, gain=body.gain)
+    png, alt = phase_cost_png(res["cost_map"] or [[0.0]], res["offset"], conclusive=res["conclusive"])
+    summary = (f"{res['message']}; cost at origin {100 * res['cost_nominal']:.2f} %, "
+               f"best {100 * res['cost_best']:.2f} %")
+    resp = _png_response(png, alt)
+    resp.headers["X-Phase-Summary"] = summary.encode("ascii", "replace").decode()
+    return resp

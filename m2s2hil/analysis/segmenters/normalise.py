@@ -1,0 +1,128 @@
+"""Which pixels and bands of a cube can be trusted, and the cube put on a common radiometric scale.
+
+The spectral segmenter works on spectral *shape* (unit spectra), so a global exposure or gain
+factor and multiplicative shading already cancel; what exposure changes is which pixels still
+carry a shape (issue 23, docs/evaluation.md "Robustness"):
+
+- **clipped** bands: a band at the sensor's full scale records only a lower bound, and a pixel
+  clipped in some bands has a flattened spectrum (over-exposure split one material into several
+  "flat-topped" clusters). Without the full scale, a clipped band shows as a *plateau*: many
+  pixels within ``PLATEAU_REL_TOL`` of the band's maximum (dark subtraction leaves the clipped
+  value at full scale − dark, the same to a few DN). A processor's own mask (``saturated``,
+  ``ProcessedFrame.saturated_mask``) can be given instead or as well.
+- **near-black** pixels: band energy under ``snr_min`` × the noise floor. Their unit spectrum is
+  mostly noise (its angular noise is about 1/SNR rad, 6° at SNR 10), and at low exposure they
+  formed clusters of their own (under-exposure split a one-material build into 5–10).
+  The noise floor is measured on the backdrop: per band, σ from differences of horizontal
+  neighbours (both in the backdrop), σ² = mean(d²)/2 — robust to the backdrop's own level and
+  not quantised to zero as a MAD of super-pixel values is.
+
+``normalise_cube`` divides by the white reference (per band or per pixel) and by
+exposure × gain where given: the cube becomes reflectance-like, so the same object at another
+exposure gives the same numbers (shape and brightness coordinate alike).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from m2s2hil.analysis.errors import AnalysisInputError
+
+PLATEAU_REL_TOL = 0.004  # a clipped band: values within 0.4 % of its maximum (≈ 4 DN on 10 bits)
+PLATEAU_MIN_PIXELS = 20
+PLATEAU_MIN_FRACTION = 0.002  # of the foreground: a natural tail puts far fewer pixels that close
+MAX_CLIPPED_FRACTION = 0.05  # a band clipped on more of the foreground is left out of the features
+MIN_BANDS = 3
+
+
+@dataclass(frozen=True)
+class Reliability:
+    """What ``reliability`` found; masks are (H, W) unless stated."""
+
+    bands: np.ndarray  # int indices of the bands the features use (clipped-out bands left out)
+    clipped: np.ndarray  # bool (bands, H, W): the band is at its clipping plateau
+    saturated: np.ndarray  # a used band clipped (or the given mask)
+    dark: np.ndarray  # near-black: energy (used bands) < snr_min × noise floor
+    noise: np.ndarray  # (bands,) noise floor σ per band, cube units
+    snr: np.ndarray  # energy / noise floor energy (used bands)
+
+    @property
+    def unreliable(self) -> np.ndarray:
+        return self.saturated | self.dark
+
+
+def normalise_cube(
+    cube: np.ndarray, *, white: np.ndarray | None = None, exposure_s: float | None = None, gain: float = 1.0
+) -> np.ndarray:
+    """``cube / (white · exposure_s · gain)``: ``white`` per band ``(bands,)`` or per pixel
+    ``(bands, H, W)`` (the calibration's white reference), non-positive entries refused."""
+    out = np.asarray(cube, dtype=np.float64)
+    if white is not None:
+        w = np.asarray(white, dtype=np.float64)
+        if w.ndim == 1:
+            w = w[:, None, None]
+        if w.shape[0] != out.shape[0] or w.ndim != 3:
+            raise AnalysisInputError("white", f"shape {np.shape(white)} does not fit a cube of {out.shape}")
+        if not np.all(np.isfinite(w)) or np.any(w <= 0):
+            raise AnalysisInputError("white", "the white reference must be finite and > 0 in every band")
+        out = out / w
+    if exposure_s is not None:
+        if not exposure_s > 0 or not gain > 0:
+            raise AnalysisInputError("exposure_s", f"exposure and gain must be > 0, got {exposure_s}, {gain}")
+        out = out / (exposure_s * gain)
+    return out
+
+
+def clipped_bands(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
+    """(bands, H, W) bool: per band, the pixels on a clipping plateau (see module docstring);
+    a band without a plateau has none."""
+    out = np.zeros(cube.shape, dtype=bool)
+    n_fg = int(fg.sum())
+    need = max(PLATEAU_MIN_PIXELS, int(PLATEAU_MIN_FRACTION * n_fg))
+    for b in range(cube.shape[0]):
+        top = float(cube[b].max())
+        if top <= 0:
+            continue
+        near = cube[b] >= top * (1.0 - PLATEAU_REL_TOL)
+        if int(near.sum()) >= need:
+            out[b] = near
+    return out
+
+
+def backdrop_noise(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
+    """(bands,) noise σ per band from horizontal neighbour differences inside the backdrop."""
+    both = ~fg[:, 1:] & ~fg[:, :-1]
+    if int(both.sum()) < 10:  # no backdrop to measure on: the object's own fine differences
+        both = np.ones_like(both)
+    d = (cube[:, :, 1:] - cube[:, :, :-1])[:, both]
+    sigma = np.sqrt(np.mean(d.astype(np.float64) ** 2, axis=1) / 2.0)
+    tiny = 1e-9 * max(float(np.abs(cube).max()), 1e-12)
+    return np.maximum(sigma, tiny)
+
+
+def reliability(
+    cube: np.ndarray, fg: np.ndarray, *, snr_min: float = 10.0, saturated: np.ndarray | None = None
+) -> Reliability:
+    """Clipped bands, saturated and near-black pixels of ``cube`` (bands, H, W) with foreground ``fg``."""
+    n_bands = cube.shape[0]
+    clipped = clipped_bands(cube, fg)
+    n_fg = max(int(fg.sum()), 1)
+    frac = clipped[:, fg].sum(axis=1) / n_fg
+    keep = frac <= MAX_CLIPPED_FRACTION
+    if int(keep.sum()) < min(MIN_BANDS, n_bands):  # keep at least the least-clipped few
+        keep = np.zeros(n_bands, dtype=bool)
+        keep[np.argsort(frac, kind="stable")[: min(MIN_BANDS, n_bands)]] = True
+    bands = np.flatnonzero(keep)
+    sat = clipped[bands].any(axis=0)
+    if saturated is not None:
+        given = np.asarray(saturated, dtype=bool)
+        if given.shape != fg.shape:
+            raise AnalysisInputError("saturated", f"mask shape {given.shape}, expected {fg.shape}")
+        # a processor's mask flags any clipped band; those left out of the features do not count
+        sat = sat | (given & ~clipped[~keep].any(axis=0)) if (~keep).any() else sat | given
+    noise = backdrop_noise(cube, fg)
+    energy = np.sqrt(np.einsum("bhw,bhw->hw", cube[bands], cube[bands]))
+    snr = energy / float(np.sqrt(np.sum(noise[bands] ** 2)))
+    return Reliability(bands, clipped, sat & fg, (snr < snr_min) & fg, noise, snr)

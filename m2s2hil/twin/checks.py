@@ -1,0 +1,383 @@
+"""Checks during the sweep: each frame against the twin at its recorded pose and lighting.
+
+What stands on the turntable should be what the session says, where it says. For a frame
+(its processed cube, reduced to ``size`` px) the checks ask:
+
+1. **Geometry.** The twin's silhouette of the session's mockup, on axis, at the recorded
+   pose, is aligned to the frame's mask by two Gauss-Newton steps over an image shift
+   (u, v), a yaw and a tilt (the shift's derivative is the blurred silhouette's gradient; yaw
+   and tilt by one extra render each). ``off_axis``: the shift exceeds ``shift_mm``
+   (the mockup off the turntable axis, or the frame off centre); ``yawed``: the yaw at this
+   azimuth exceeds ``yaw_deg``; ``tilt_off``: the tilt exceeds ``tilt_deg`` (a biased or
+   drifting tilt stage; against the registration's bias once there is one: ``tilt_drift``);
+   ``wrong_mockup``: even aligned, the silhouettes overlap less than ``min_iou`` (another
+   satellite, or none). A displacement along the line of sight does not move an
+   orthographic silhouette: it shows only once the turntable has turned (docs/twin.md).
+2. **Materials.** The twin's label map, aligned, says which filament each pixel should show;
+   its shaded render under the frame's lamps predicts that pixel's spectrum. ``wrong_build``:
+   more than ``max_wrong_fraction`` of the confidently labelled pixels (regions eroded by a
+   pixel, unsaturated) have a spectrum more than ``spectrum_deg`` from the prediction.
+3. **Lamps.** The frame is fitted as a non-negative mix of the twin rendered under each lit
+   lamp alone, exposure and gain applied (``scipy.optimize.nnls``): a lamp's factor is its
+   output relative to nominal. ``lamp_out`` below ``out_factor``, ``lamp_dim`` below
+   ``dim_factor`` (the factors per lamp name are in the result).
+
+The twin's photometry is the simulator's (catalog reflectances, the sensor's QE and gain):
+exact on the simulated rig, an assumption a real rig would calibrate (white reference).
+
+Cost: about 15–40 ms per frame at 96 px (docs/benchmarks.md); :class:`SweepChecks` (the
+capture-time QC's companion, ``analysis.qc``) runs them on the first ``first_frames``
+frames after every change of lighting, tilt or mount and then on every ``every``-th
+frame, so the processing thread keeps up with 65 frames/s.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from m2s2hil.simulators.scene import MountedScene
+from scipy.optimize import nnls
+
+from m2s2hil.twin.projection import NOMINAL, Placement, TwinCamera, coverage_of, observed_mask
+
+CHECKS_VERSION = 1
+FLAGS = ("off_axis", "yawed", "tilt_off", "tilt_drift", "wrong_mockup", "wrong_build", "lamp_out", "lamp_dim")
+
+
+@dataclass(frozen=True)
+class CheckConfig:
+    """Tolerances and effort of the twin's checks (see the module docstring)."""
+
+    size: int = 96
+    shift_mm: float = 1.0
+    yaw_deg: float = 1.5
+    tilt_deg: float = 1.0
+    min_iou: float = 0.6
+    spectrum_deg: float = 15.0
+    brightness_ratio: float = 1.6
+    max_wrong_fraction: float = 0.2
+    out_factor: float = 0.3
+    dim_factor: float = 0.75
+    first_frames: int = 3
+    every: int = 8
+    diameter_mm: float | None = None  # None: the twin's default (projection.DIAMETER_MM)
+
+    def __post_init__(self) -> None:
+        checks = {
+            "size": 24 <= self.size <= 1024, "shift_mm": self.shift_mm > 0, "yaw_deg": self.yaw_deg > 0,
+            "tilt_deg": self.tilt_deg > 0, "min_iou": 0 <= self.min_iou <= 1,
+            "spectrum_deg": 0 < self.spectrum_deg < 90,
+            "brightness_ratio": self.brightness_ratio > 1, "max_wrong_fraction": 0 < self.max_wrong_fraction < 1,
+            "out_factor": 0 <= self.out_factor <= self.dim_factor <= 1, "first_frames": self.first_frames >= 0,
+            "every": self.every >= 1,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"CheckConfig.{name} out of range: {getattr(self, name)!r}")
+
+
+@dataclass(frozen=True)
+class LampSpec:
+    """A lamp as the twin needs it: name, relay channel, kind (as ``simulators.world.LampInfo``)."""
+
+    name: str
+    channel: int
+    kind: str
+    warmup_s: float = 0.0
+
+
+@dataclass
+class Alignment:
+    u_px: float
+    v_px: float
+    yaw_deg: float
+    tilt_deg: float
+    iou: float
+
+
+def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
+    return cv2.GaussianBlur(img, (0, 0), sigma)
+
+
+def _shift(img: np.ndarray, u: float, v: float) -> np.ndarray:
+    m = np.float32([[1, 0, u], [0, 1, v]])
+    return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle between spectra ``a`` and ``b`` (bands first), degrees."""
+    na = np.linalg.norm(a, axis=0)
+    nb = np.linalg.norm(b, axis=0)
+    cos = np.einsum("b...,b...->...", a, b) / np.maximum(na * nb, 1e-12)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+class TwinChecks:
+    """The checks of one camera model and lamp set (thread-safe: one frame at a time)."""
+
+    def __init__(self, model: Any, lamps: Sequence[LampSpec], *, config: CheckConfig | None = None,
+                 spot_angle_deg: float = 45.0, sensor_params: Any = None) -> None:
+        self.config = cfg = config or CheckConfig()
+        kw = {} if cfg.diameter_mm is None else {"diameter_mm": cfg.diameter_mm}
+        self.twin = TwinCamera(model, cfg.size, **kw)
+        self.lamps = {lp.channel: lp for lp in lamps}
+        self.spot_angle_deg = float(spot_angle_deg)
+        from m2s2hil.simulators.sensor import Sensor
+        from m2s2hil.simulators.world import LampInfo
+
+        self._lamp_info = {lp.channel: LampInfo(lp.name, lp.kind, lp.warmup_s) for lp in lamps}
+        self._sensor = Sensor(8, 8, model.layout, model.bands_nm, model.fwhm_nm, int(model.full_scale),
+                              sensor_params)
+        self.full_scale = float(model.full_scale)
+        self._lock = threading.Lock()
+
+    # -- geometry --------------------------------------------------------------------
+    def align(self, m: MountedScene, az: float, tilt: float, obs: np.ndarray, prior: Placement = NOMINAL,
+              iterations: tuple[float, ...] = (2.0, 1.0)) -> Alignment:
+        """Image shift, yaw and tilt that align the twin (at ``prior``) with the mask coverage ``obs``."""
+        u = v = dyaw = dtilt = 0.0
+        h_ang = 0.5
+        for sigma in iterations:
+            tgt = _blur(obs, sigma)
+            p = Placement(prior.dx_mm, prior.dy_mm, prior.yaw_deg + dyaw, prior.tilt_bias_deg + dtilt,
+                          prior.scale)
+            base = _blur(_shift(self.twin.coverage(m, az, tilt, p), u, v), sigma)
+            py = Placement(p.dx_mm, p.dy_mm, p.yaw_deg + h_ang, p.tilt_bias_deg, p.scale)
+            pt = Placement(p.dx_mm, p.dy_mm, p.yaw_deg, p.tilt_bias_deg + h_ang, p.scale)
+            by = _blur(_shift(self.twin.coverage(m, az, tilt, py), u, v), sigma)
+            bt = _blur(_shift(self.twin.coverage(m, az, tilt, pt), u, v), sigma)
+            gy, gx = np.gradient(base)
+            # The fifth column grows the silhouette evenly (|gradient|): the mask counts the
+            # pixels its edge only partly covers, which a yaw or tilt must not explain.
+            jac = np.column_stack([-gx.ravel(), -gy.ravel(), ((by - base) / h_ang).ravel(),
+                                   ((bt - base) / h_ang).ravel(), np.hypot(gx, gy).ravel()])
+            r = (base - tgt).ravel()
+            jtj = jac.T @ jac
+            jtj += np.eye(5) * max(float(np.trace(jtj)), 1e-9) * 1e-6
+            step = np.linalg.solve(jtj, -jac.T @ r)
+            step = np.clip(step, [-8, -8, -6, -6, -3], [8, 8, 6, 6, 3])
+            u, v, dyaw, dtilt = u + step[0], v + step[1], dyaw + step[2], dtilt + step[3]
+        p = Placement(prior.dx_mm, prior.dy_mm, prior.yaw_deg + dyaw, prior.tilt_bias_deg + dtilt, prior.scale)
+        final = _shift(self.twin.coverage(m, az, tilt, p), u, v) >= 0.5
+        seen = obs >= 0.5
+        union = np.logical_or(final, seen).sum()
+        iou = float(np.logical_and(final, seen).sum() / union) if union else 1.0
+        return Alignment(float(u), float(v), float(dyaw), float(dtilt), iou)
+
+    # -- the frame -------------------------------------------------------------------
+    def check(self, cube: np.ndarray, satellite: str, build: str, azimuth_deg: float, tilt_deg: float,
+              lamps_on: Sequence[int], exposure_s: float, gain: float = 1.0,
+              registered: Placement | None = None, saturated: np.ndarray | None = None) -> dict[str, Any]:
+        """Flags and measurements of one frame (a dict for ``meta["qc"]["twin"]``)."""
+        t0 = time.perf_counter()
+        cfg = self.config
+        with self._lock:
+            arr = np.asarray(cube, dtype=np.float32)
+            shape = self.twin.shape
+            small = np.stack([cv2.resize(b, (shape[1], shape[0]), interpolation=cv2.INTER_AREA) for b in arr])
+            clipped = np.zeros(shape, dtype=bool)
+            if saturated is not None and saturated.shape == arr.shape[1:]:
+                clipped = coverage_of(saturated, shape) > 0
+            clipped |= (small >= 0.95 * self.full_scale).any(axis=0)
+            obs = coverage_of(observed_mask(arr), shape)
+            m = self.twin.mounted(satellite, build)
+            out: dict[str, Any] = {"checks_version": CHECKS_VERSION}
+            flags: list[str] = []
+            al = self.align(m, azimuth_deg, tilt_deg, obs) if (obs >= 0.5).any() else Alignment(0, 0, 0, 0, 0.0)
+            if al.iou < cfg.min_iou:
+                # Nothing like the mockup in view: the light first (a dead lamp leaves the
+                # frame dark), else another satellite (or none) stands there.
+                ratio = self._light_ratio(m, azimuth_deg, tilt_deg, al, small, clipped, lamps_on,
+                                          exposure_s, gain)
+                dark = ratio is not None and ratio < cfg.out_factor
+                out.update(flags=["lamp_out" if dark else "wrong_mockup"], iou=round(al.iou, 4),
+                           light_ratio=None if ratio is None else round(ratio, 4),
+                           elapsed_s=round(time.perf_counter() - t0, 4))
+                return out
+            mm = 1.0 / self.twin.px_per_mm()
+            shift_mm = math.hypot(al.u_px, al.v_px) * mm
+            out.update(shift_mm=[round(al.u_px * mm, 3), round(al.v_px * mm, 3)], yaw_deg=round(al.yaw_deg, 3),
+                       tilt_deg=round(al.tilt_deg, 3), iou=round(al.iou, 4))
+            if shift_mm > cfg.shift_mm:
+                flags.append("off_axis")
+            if abs(al.yaw_deg) > cfg.yaw_deg:
+                flags.append("yawed")
+            if registered is None and abs(al.tilt_deg) > cfg.tilt_deg:
+                flags.append("tilt_off")
+            if registered is not None and abs(al.tilt_deg - registered.tilt_bias_deg) > cfg.tilt_deg:
+                flags.append("tilt_drift")  # a bias the registration knows is no news; a change is
+            p = Placement(0.0, 0.0, al.yaw_deg, al.tilt_deg, 1.0)
+            flags += self._photometry(m, azimuth_deg, tilt_deg, p, al, small, clipped, lamps_on,
+                                      exposure_s, gain, out)
+            out["flags"] = flags
+            out["elapsed_s"] = round(time.perf_counter() - t0, 4)
+            return out
+
+    def _renders(self, m: MountedScene, az: float, tilt: float, p: Placement, al: Alignment,
+                 outputs: Mapping[int, float], dn_scale: float) -> tuple[np.ndarray, np.ndarray]:
+        sh = self.twin.shaded(m, az, tilt, p, outputs, self._lamp_info, self.spot_angle_deg,
+                              band_gain=self._sensor.band_gain)
+        cube = sh.cube(dn_scale)
+        cube = np.stack([_shift(b, al.u_px, al.v_px) for b in cube])
+        lab = cv2.warpAffine(sh.label, np.float32([[1, 0, al.u_px], [0, 1, al.v_px]]),
+                             (sh.label.shape[1], sh.label.shape[0]), flags=cv2.INTER_NEAREST)
+        return cube, lab
+
+    def _light_ratio(self, m: MountedScene, az: float, tilt: float, al: Alignment, small: np.ndarray,
+                     clipped: np.ndarray, lamps_on: Sequence[int], exposure_s: float, gain: float) -> float | None:
+        lit = [ch for ch in lamps_on if ch in self.lamps]
+        if not lit:
+            return None
+        dn_scale = float(exposure_s) * self._sensor.dn_per_e(gain)
+        nominal, _ = self._renders(m, az, tilt, NOMINAL, al, dict.fromkeys(lit, 1.0), dn_scale)
+        whole = ~clipped
+        return float(small[:, whole].sum() / max(float(nominal[:, whole].sum()), 1e-9))
+
+    def _photometry(self, m: MountedScene, az: float, tilt: float, p: Placement, al: Alignment,
+                    small: np.ndarray, clipped: np.ndarray, lamps_on: Sequence[int], exposure_s: float,
+                    gain: float, out: dict[str, Any]) -> list[str]:
+        cfg = self.config
+        flags: list[str] = []
+        lit = [ch for ch in lamps_on if ch in self.lamps]
+        if not lit:
+            return flags
+        dn_scale = float(exposure_s) * self._sensor.dn_per_e(gain)
+        nominal, lab = self._renders(m, az, tilt, p, al, dict.fromkeys(lit, 1.0), dn_scale)
+        # Materials: pixels well inside a region, unclipped, bright enough to have a spectrum.
+        inner = np.zeros(lab.shape, dtype=bool)
+        for k in np.unique(lab):
+            if k == 0:
+                continue
+            inner |= cv2.erode((lab == k).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        energy = np.linalg.norm(small, axis=0)
+        good = inner & ~clipped & (energy > 0.02 * self.full_scale) & (np.linalg.norm(nominal, axis=0) > 0)
+        if good.sum() >= 20:
+            # Per filament region: the median angle between seen and predicted spectra; the
+            # regions whose median is off count with their area.
+            ang = _angle_deg(small, nominal)
+            bright = np.log(np.maximum(np.linalg.norm(small, axis=0), 1e-6)
+                            / np.maximum(np.linalg.norm(nominal, axis=0), 1e-6))
+            ref = float(np.median(bright[good]))  # the frame's own level (exposure, lamps)
+            wrong_px, regions = 0, {}
+            for k in np.unique(lab[good]):
+                sel = good & (lab == k)
+                if sel.sum() < 4:
+                    continue
+                med = float(np.median(ang[sel]))
+                level = float(np.median(bright[sel])) - ref
+                regions[m.class_names[int(k)]] = [round(med, 2), round(math.exp(level), 3)]
+                if med > cfg.spectrum_deg or abs(level) > math.log(cfg.brightness_ratio):
+                    wrong_px += int(sel.sum())
+            wrong = wrong_px / max(1, int(good.sum()))
+            n_wrong = sum(a > cfg.spectrum_deg or abs(math.log(b)) > math.log(cfg.brightness_ratio)
+                          for a, b in regions.values())
+            out["materials"] = {"pixels": int(good.sum()), "wrong_fraction": round(wrong, 4),
+                                "wrong_regions": n_wrong, "regions": regions}
+            if wrong > cfg.max_wrong_fraction or n_wrong >= 2:
+                flags.append("wrong_build")
+        # Lamps: the frame as a non-negative mix of single-lamp renders (backdrop included).
+        use = ~clipped & (cv2.dilate(inner.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0)
+        if use.sum() >= 20:
+            cols = []
+            for ch in lit:
+                single, _ = self._renders(m, az, tilt, p, al, {ch: 1.0}, dn_scale)
+                cols.append(single[:, use].ravel())
+            factors = _lamp_factors(np.column_stack(cols), small[:, use].ravel())
+            named = {self.lamps[ch].name: round(float(f), 3) for ch, f in zip(lit, factors, strict=True)}
+            # The light as a whole: seen over predicted, object and backdrop (the backdrop is
+            # lit by every lamp, a large and uniform witness of their sum).
+            whole = ~clipped
+            ratio = float(small[:, whole].sum() / max(float(nominal[:, whole].sum()), 1e-9))
+            out["lamps"] = named
+            out["light_ratio"] = round(ratio, 4)
+            low = ratio * len(lit) - (len(lit) - 1)  # what one lamp short would explain the ratio with
+            if low < cfg.out_factor:
+                flags.append("lamp_out")
+            elif low < cfg.dim_factor:
+                flags.append("lamp_dim")
+        return flags
+
+
+def _lamp_factors(a: np.ndarray, y: np.ndarray, ridge: float = 0.05) -> np.ndarray:
+    """Non-negative lamp factors f with ``a @ f ≈ y``, pulled towards 1 (nominal) by a ridge of
+    ``ridge`` × the mean column energy: lamps from mirrored directions (the two side bars)
+    light a symmetric mockup alike, and without the pull the fit trades one for the other."""
+    a = a.astype(np.float64)
+    y = y.astype(np.float64)
+    k = a.shape[1]
+    lam = math.sqrt(ridge * float(np.einsum("ij,ij->", a, a)) / k)
+    aa = np.vstack([a, lam * np.eye(k)])
+    yy = np.concatenate([y, lam * np.ones(k)])
+    f, _ = nnls(aa, yy)
+    return f
+
+
+@dataclass
+class SweepChecks:
+    """The checks through a sweep: which frames to check, and the incremental registration.
+
+    ``due(key)`` says whether a frame is checked: the first ``first_frames`` after every
+    change of ``key`` (lighting, elevation, mount), then every ``every``-th.
+    """
+
+    checks: TwinChecks
+    satellite: str
+    build: str
+    registration: Any = None  # registration.IncrementalRegistration, if registration runs too
+    _key: Any = None
+    _count: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def due(self, key: Any) -> bool:
+        with self._lock:
+            if key != self._key:
+                self._key, self._count = key, 0
+            self._count += 1
+            n, cfg = self._count, self.checks.config
+            return n <= cfg.first_frames or (n - cfg.first_frames) % cfg.every == 0
+
+    def __call__(self, cube: np.ndarray, meta: Mapping[str, Any], key: Any = None,
+                 saturated: np.ndarray | None = None) -> dict[str, Any] | None:
+        """The twin's result for a frame (None: not checked this frame)."""
+        pose = meta.get("pose") or {}
+        az, tilt = pose.get("turntable_deg"), pose.get("tilt_deg")
+        if not isinstance(az, (int, float)) or not isinstance(tilt, (int, float)):
+            return None
+        reg = None
+        if self.registration is not None:
+            from m2s2hil.twin.registration import Observation
+
+            r = self.registration.add(Observation.from_cube(self.satellite, self.build, az, tilt, cube, 96))
+            reg = r.placement if r is not None else None
+        if not self.due(key):
+            return None
+        res = self.checks.check(cube, self.satellite, self.build, float(az), float(tilt),
+                                list(meta.get("lamps_on") or []), float(meta.get("exposure_s") or 0.0),
+                                float(meta.get("gain") or 1.0), registered=reg, saturated=saturated)
+        if self.registration is not None and self.registration.current is not None:
+            res["registration"] = self.registration.current.as_dict()
+        return res
+
+
+def sweep_checks(sweep: Any, rig: Any, config: CheckConfig | None = None, *,
+                 register: bool = False) -> SweepChecks:
+    """The checks for a session: its sweep's satellite and build, its rig's camera and lamps."""
+    lamps = [LampSpec(name, lc.channel, lc.kind, lc.warmup_s) for name, lc in rig.lamps.items()]
+    sim = getattr(rig, "simulation", None)
+    checks = TwinChecks(rig.camera.model, lamps, config=config,
+                        spot_angle_deg=sim.spot_angle_deg if sim is not None else 45.0,
+                        sensor_params=sim.sensor.params() if sim is not None else None)
+    incremental = None
+    if register:
+        from m2s2hil.twin.registration import IncrementalRegistration, Registrar
+
+        incremental = IncrementalRegistration(Registrar(rig.camera.model))
+    return SweepChecks(checks, sweep.satellite, sweep.build, incremental)
