@@ -54,7 +54,7 @@ def wait_up(base: str, timeout: float = 60.0) -> None:
     raise RuntimeError("daemon did not start")
 
 
-def measure(page, proc: psutil.Process, seconds: float, exposure_ms: float) -> dict:
+def measure(page, proc: psutil.Process, seconds: float, exposure_ms: float, base: str = "") -> dict:
     page.fill("#live-exposure", str(exposure_ms))
     page.dispatch_event("#live-exposure", "change")
     page.click("#live-toggle")
@@ -70,6 +70,7 @@ def measure(page, proc: psutil.Process, seconds: float, exposure_ms: float) -> d
     cpu = proc.cpu_percent(None)
     elapsed = time.monotonic() - cpu_t0
     samples = page.evaluate("window.m2s2hilSamples")
+    live = httpx.get(base + "/camera/live", headers=HEADERS).json() if base else {}
     page.click("#live-toggle")
     lat = sorted(s["latency"] for s in samples)
     span_s = (samples[-1]["t"] - samples[0]["t"]) / 1000 if len(samples) > 1 else float("nan")
@@ -77,7 +78,11 @@ def measure(page, proc: psutil.Process, seconds: float, exposure_ms: float) -> d
             "fps": round((len(samples) - 1) / span_s, 1) if len(samples) > 1 else 0.0,
             "latency_ms_median": round(statistics.median(lat), 1) if lat else None,
             "latency_ms_p95": round(lat[int(0.95 * (len(lat) - 1))], 1) if lat else None,
-            "daemon_cpu_percent": round(cpu, 1), "exposure_ms": exposure_ms}
+            "daemon_cpu_percent": round(cpu, 1), "exposure_ms": exposure_ms,
+            # what the stream asks of the camera, what the daemon produced, the first frame's wait
+            "stream_fps": live.get("stream_fps"), "daemon_fps": live.get("fps"),
+            "cold_start_s": live.get("cold_start_s"),
+            "render_ms": (live.get("stats") or {}).get("render_ms")}
 
 
 def screenshots(page, base: str, out: Path) -> None:
@@ -156,7 +161,7 @@ def main() -> None:
                 page = b.new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
                 page.goto(base + "/")
                 page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")
-                rows = [measure(page, proc, args.seconds, e) for e in args.exposure_ms]
+                rows = [measure(page, proc, args.seconds, e, base) for e in args.exposure_ms]
                 if args.screenshots is not None:
                     screenshots(page, base, args.screenshots)
                 b.close()

@@ -123,9 +123,8 @@ def export_session_of(shared: SharedSessions, satellite: str = "hubble", build: 
 
 
 def synthetic_session_of(shared: SharedSessions, satellite: str = "hubble", build: str = "B2") -> Written:
-    """The shared synthetic session (m2s2hil.twin.synth) of ``satellite``/``build``: E0, E2 and the
-    synthetic-only E3 × four azimuths of 32² renders, so it pairs by pose with
-    :func:`export_session_of`'s E0/E2 frames."""
+    """The shared synthetic session (m2s2hil.twin.synth) of ``satellite``/``build``: E0 and the
+    synthetic-only E3 × azimuths 0 and 180 of 32² renders (four views)."""
 
     def make(root: Path) -> Written:
         from m2s2hil.analysis.segmenters.rgb import band_colours, camera_weights
@@ -133,7 +132,7 @@ def synthetic_session_of(shared: SharedSessions, satellite: str = "hubble", buil
 
         rig = small_rig()
         bands = rig.camera.model.bands_nm
-        plan = SynthPlan(satellite, build, elevations=("E0", "E2", "E3"), azimuth_step_deg=90, size=32)
+        plan = SynthPlan(satellite, build, elevations=("E0", "E3"), azimuth_step_deg=180, size=32)
         res = synthesise(root, rig, plan, band_colours(bands, gamma=0.8), camera_weights(bands))
         return Written(root, res.session_id)
 

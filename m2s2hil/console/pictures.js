@@ -397,7 +397,7 @@ const pictures = (() => {
     if (!box || !sid) return;
     let cov;
     try { cov = await api("GET", `/sessions/${sid}/coverage`); } catch (e) { box.replaceChildren(mk("div", { class: "muted" }, e.message)); return; }
-    const cell = 16, left = 40, top = 16;
+    const cell = 20, left = 40, top = 16;
     const frag = [];
     for (const lt of cov.lightings) {
       const w = left + cell * cov.azimuths_deg.length + 6, h = top + cell * cov.elevations.length + 16;
@@ -409,8 +409,12 @@ const pictures = (() => {
       const text = (x, y, t, anchor = "start") => { const e = document.createElementNS(SVG, "text"); e.setAttribute("x", x); e.setAttribute("y", y); e.setAttribute("text-anchor", anchor); e.textContent = t; svg.append(e); };
       text(0, 11, name);
       cov.elevations.forEach((el, r) => text(left - 5, top + r * cell + cell * 0.7, el, "end"));
-      const every = cov.azimuths_deg.length <= 12 ? 1 : Math.round(cov.azimuths_deg.length / 4);
-      cov.azimuths_deg.forEach((a, k) => { if (k % every === 0) text(left + k * cell + cell / 2, top + cov.elevations.length * cell + 12, a + "°", "middle"); });
+      // labels where they fit: every azimuth when there are few, else the multiples of 90°
+      const few = cov.azimuths_deg.length <= 6 || !cov.azimuths_deg.some((a) => a % 90 === 0);
+      const every = Math.ceil(30 / cell);
+      cov.azimuths_deg.forEach((a, k) => {
+        if (few ? k % every === 0 : a % 90 === 0) text(left + k * cell + cell / 2, top + cov.elevations.length * cell + 12, a + "°", "middle");
+      });
       for (const c of cov.cells.filter((c) => c.lighting === lt)) {
         const r = cov.elevations.indexOf(c.elevation), k = cov.azimuths_deg.indexOf(c.azimuth_deg);
         const rect = document.createElementNS(SVG, "rect");

@@ -57,6 +57,7 @@ from m2s2hil.rig.opened import Rig
 
 from . import listing
 from .activity import ActivityLog
+from .busy import BusyActions
 from .engine_requests import Action, request, wait_safe_boundary
 from .errors import Conflict, HoldNotSaved
 from .hold import QueueHold
@@ -112,6 +113,8 @@ class SessionManager:
         self._home_deferred = home_deferred
         #: What happened, who did it and from where: faults, retries, state changes, operator actions.
         self.activity = ActivityLog()
+        #: Long operator actions running now (a snapshot, darks, an export…): each once at a time.
+        self.busy = BusyActions()
         #: The rig's door for request threads and the emergency stop.
         self.guard = RigGuard(self, estop_grace_s=estop_grace_s, estop_timeout_s=estop_timeout_s)
         #: Status, listings, frames and journals for the clients.

@@ -270,6 +270,13 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     frames = store.frames()
     if not frames:
         raise ExportError(f"session {store.session_id} has no frames to export")
+    if store.kind == "synthetic":
+        n_az = len(store.sweep.azimuths())
+        if layout != "m2s2":
+            from m2s2hil.store.export_synthetic import export_synthetic
+
+            return export_synthetic(store, out, layout, frames, overwrite=overwrite)
+        return _export_synthetic_m2s2(store, out, frames, n_az, overwrite=overwrite)
     if layout == "zarr":
         from m2s2hil.store.zarr_export import ZarrExportError, export_zarr
 
@@ -283,12 +290,6 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     b = f"b{int(store.sweep.build[1:])}"
     n_az = len(store.sweep.azimuths())
     bits = store.rig.camera.model.bit_depth
-    if store.kind == "synthetic":
-        if layout != "m2s2":
-            from m2s2hil.store.export_synthetic import export_synthetic
-
-            return export_synthetic(store, out, layout, frames, overwrite=overwrite)
-        return _export_synthetic_m2s2(store, out, frames, n_az, overwrite=overwrite)
     rows = [_row(store, fr, n_az) for fr in frames]
 
     def rel_name(r: dict) -> str:

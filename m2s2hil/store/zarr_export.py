@@ -79,10 +79,12 @@ def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, 
             return np.zeros(shape, np.uint8)
         return decode_image(store.read_file(fr.files[role])).astype(np.uint8)
 
-    raw = da.stack([da.from_delayed(delayed(raw_of)(fr.event_id), shape, np.uint16) for fr in frames])
-    labels = da.stack([da.from_delayed(delayed(labels_of)(fr.event_id), shape, np.uint8) for fr in frames])
-    projected = da.stack([da.from_delayed(delayed(labels_of)(fr.event_id, PROJECTED), shape, np.uint8)
-                          for fr in frames])
+    def lazy(fn: Callable[..., np.ndarray], dtype: Any, *args: str) -> Any:
+        return da.stack([da.from_delayed(delayed(fn)(fr.event_id, *args), shape, dtype) for fr in frames])
+
+    raw = lazy(raw_of, np.uint16)
+    labels = lazy(labels_of, np.uint8)
+    projected = lazy(labels_of, np.uint8, PROJECTED)
     cat = load_catalog()
 
     def col(fn: Callable[[FrameRecord], Any]) -> np.ndarray:

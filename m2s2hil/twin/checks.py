@@ -266,7 +266,7 @@ class TwinChecks:
             bright = np.log(np.maximum(np.linalg.norm(small, axis=0), 1e-6)
                             / np.maximum(np.linalg.norm(nominal, axis=0), 1e-6))
             ref = float(np.median(bright[good]))  # the frame's own level (exposure, lamps)
-            wrong_px, regions = 0, {}
+            wrong_px, strong, regions = 0, False, {}
             for k in np.unique(lab[good]):
                 sel = good & (lab == k)
                 if sel.sum() < 4:
@@ -276,12 +276,15 @@ class TwinChecks:
                 regions[m.class_names[int(k)]] = [round(med, 2), round(math.exp(level), 3)]
                 if med > cfg.spectrum_deg or abs(level) > math.log(cfg.brightness_ratio):
                     wrong_px += int(sel.sum())
+                    # Far off (twice the angle, the ratio squared) and not a sliver: alone enough.
+                    strong |= bool((med > 2 * cfg.spectrum_deg or abs(level) > 2 * math.log(cfg.brightness_ratio))
+                                   and sel.sum() >= 0.03 * good.sum())
             wrong = wrong_px / max(1, int(good.sum()))
             n_wrong = sum(a > cfg.spectrum_deg or abs(math.log(b)) > math.log(cfg.brightness_ratio)
                           for a, b in regions.values())
             out["materials"] = {"pixels": int(good.sum()), "wrong_fraction": round(wrong, 4),
                                 "wrong_regions": n_wrong, "regions": regions}
-            if wrong > cfg.max_wrong_fraction or n_wrong >= 2:
+            if wrong > cfg.max_wrong_fraction or n_wrong >= 2 or strong:
                 flags.append("wrong_build")
         # Lamps: the frame as a non-negative mix of single-lamp renders (backdrop included).
         use = ~clipped & (cv2.dilate(inner.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0)

@@ -73,9 +73,10 @@ class SimBench:
         return self._darks[key]
 
     def frame(self, satellite: str, build: str, lighting: str, azimuth_deg: float, tilt_deg: float,
-              *, exposure_s: float | None = None) -> BenchFrame:
+              *, exposure_s: float | None = None, process: bool = True) -> BenchFrame:
         """A processed frame of the session's ``satellite``/``build`` (the world may mount
-        another: ``[simulation.mount]``) at the stage pose read back as given."""
+        another: ``[simulation.mount]``) at the stage pose read back as given (``process``
+        False: the truth only, no dark and an empty cube)."""
         self.light(lighting)
         self.world.mount(satellite, build)
         self._pose.update(az=float(azimuth_deg), tilt=float(tilt_deg))
@@ -89,6 +90,8 @@ class SimBench:
             exposure_s = float(f"{exposure_s:.3g}")  # a few exposures, so darks are reused
         raw = self.source.capture(exposure_s)
         truth = self.source.truth()
+        if not process:
+            return BenchFrame(np.zeros((0, 0, 0), np.float32), truth, {"exposure_s": exposure_s})
         cube = FrameProcessor("superpixel", self.model, dark=self._dark(exposure_s)).process(raw).cube
         lamps = {lamp.channel: lamp.channel in self.world.lamps_on() for lamp in self.rig.lamps.values()}
         meta = {

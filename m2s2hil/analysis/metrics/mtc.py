@@ -54,7 +54,6 @@ from m2s2hil.analysis.bands import PAPER_BANDS
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.metrics.scores import micro_iou
 from m2s2hil.analysis.segmenters.compositing import align_labels, binary_fusion, majority_vote
-from m2s2hil.analysis.segmenters.spectral import foreground_mask
 
 DEFAULT_K = 8
 DEFAULT_MAX_SHIFT = 3
@@ -197,6 +196,8 @@ class ResampledFit:
 
     def sample_size(self, cube: np.ndarray) -> int:
         """The fit sample's size for ``cube``."""
+        from m2s2hil.analysis.segmenters.spectral import foreground_mask  # scikit-learn: only when used
+
         arr = np.asarray(cube, dtype=np.float64)
         if arr.ndim == 2:
             arr = arr[np.newaxis]

@@ -80,8 +80,9 @@ def coverage_svg(cov: Mapping[str, Any], *, cell_px: int = 18, link_prefix: str 
     by = {(c["lighting"], c["elevation"], c["azimuth_deg"]): c for c in cov["cells"]}
     names = cov.get("lighting_names", {})
     left, top_pad, gap = 44, 18, 26
-    # azimuth labels every 90° (or every column when there are few)
-    every = 1 if len(azs) <= 12 else max(1, round(len(azs) / max(1, 360 / 90)))
+    # azimuth labels where they fit: every column when there are few, else the multiples of 90°
+    few = len(azs) <= 6 or not any(a % 90 == 0 for a in azs)
+    every = max(1, math.ceil(30 / cell_px))
     counts = cov.get("counts", {})
     legend = [(s, counts.get(s, 0)) for s in STATES]
     steps = [16 + 7 * (len(s) + len(str(n)) + 1) + 10 for s, n in legend]
@@ -125,7 +126,7 @@ def coverage_svg(cov: Mapping[str, Any], *, cell_px: int = 18, link_prefix: str 
                     rect = f"<a href='{esc(link_prefix + c['event_id'])}'>{rect}</a>"
                 out.append(rect)
         for k, a in enumerate(azs):
-            if k % every == 0:
+            if (k % every == 0) if few else (a % 90 == 0):
                 out.append(f"<text x='{left + k * cell_px + (cell_px - 2) / 2:.1f}' "
                            f"y='{gy + len(elevs) * cell_px + 11}' text-anchor='middle' "
                            f"fill='currentColor'>{_fmt_az(a)}°</text>")

@@ -3,9 +3,12 @@
 Needs ``pip install 'm2s2hil[sam]'`` (segment-anything + torch) and a checkpoint file
 the user supplies (e.g. ``sam_vit_h_4b8939.pth``; weights cannot be downloaded on the
 rig machines). Both are checked when the segmenter is built, the package is imported
-only at the first image. Alternatively pass ``mask_generator``: any callable taking an
-``(H, W, 3)`` uint8 image and returning SAM-style mask records — that is how the
-pipeline is tested without the model.
+only at the first image. ``model_type`` names the architecture (``vit_h``, the paper's;
+``vit_l``; ``vit_b``) or is a ``sam_model.SamArchitecture``; the weights are loaded strictly
+by ``sam_model.build_sam_model`` (``tests/test_sam_tiny.py`` runs the whole path on a tiny
+randomly initialised model saved as a checkpoint). ``device="cuda"`` runs the model on a GPU.
+Alternatively pass ``mask_generator``: any callable taking an ``(H, W, 3)`` uint8 image and
+returning SAM-style mask records — that is how the compositing is tested without torch.
 
 Pipeline per cube (``mode="bands"``, the multispectral variant):
 
@@ -45,7 +48,9 @@ from m2s2hil.analysis.segmenters.compositing import (
     majority_vote,
     top_k_masks,
 )
+from m2s2hil.analysis.segmenters.sam_model import SAM_ARCHITECTURES, SamArchitecture, build_sam_model
 from m2s2hil.analysis.segmenters.spectral import foreground_mask
+from m2s2hil.analysis.segmenters.torchvision_shim import ensure_torchvision
 
 MaskGenerator = Callable[[np.ndarray], Sequence[MaskRecord]]
 INSTALL_HINT = "install the extra with `pip install 'm2s2hil[sam]'` (segment-anything and torch)"
@@ -78,7 +83,7 @@ class SamSegmenter:
         self,
         checkpoint: str | Path | None = None,
         *,
-        model_type: str = "vit_h",
+        model_type: str | SamArchitecture = "vit_h",
         device: str = "cpu",
         mode: Literal["bands", "image"] = "bands",
         bands: Sequence[int] = PAPER_BANDS,
@@ -110,8 +115,16 @@ class SamSegmenter:
         self.generator_options = {"pred_iou_thresh": 0.88, "stability_score_thresh": 0.95,
                                   **(generator_options or {})}
         self._generator: MaskGenerator | None = mask_generator
+        self._model: Any = None  # the loaded segment_anything Sam (None until the first image)
         self.checkpoint: Path | None = None
-        self.model_type = model_type
+        if isinstance(model_type, SamArchitecture):
+            self.architecture = model_type
+        elif model_type in SAM_ARCHITECTURES:
+            self.architecture = SAM_ARCHITECTURES[model_type]
+        else:
+            raise AnalysisInputError("model_type", f"unknown SAM model {model_type!r}; "
+                                     f"known: {', '.join(sorted(SAM_ARCHITECTURES))} or a SamArchitecture")
+        self.model_type = self.architecture.name
         self.device = device
         if mask_generator is None:
             if checkpoint is None:
@@ -142,15 +155,16 @@ class SamSegmenter:
     def _load(self) -> MaskGenerator:
         if self._generator is None:
             try:
-                from segment_anything import SamAutomaticMaskGenerator, sam_model_registry
+                ensure_torchvision()  # segment_anything imports it; the CPU wheel has no matching one
+                from segment_anything import SamAutomaticMaskGenerator
             except ImportError as exc:  # e.g. torch missing behind an installed segment_anything
                 raise SegmenterUnavailableError("sam", f"{exc}; {INSTALL_HINT}") from exc
-            if self.model_type not in sam_model_registry:
-                raise AnalysisInputError("model_type", f"unknown SAM model {self.model_type!r}; "
-                                         f"known: {', '.join(sorted(sam_model_registry))}")
-            model = sam_model_registry[self.model_type](checkpoint=str(self.checkpoint))
-            model.to(device=self.device)
-            self._generator = SamAutomaticMaskGenerator(model, **self.generator_options).generate
+            assert self.checkpoint is not None  # checked at construction
+            self._model = build_sam_model(self.architecture, self.checkpoint, self.device)
+            try:
+                self._generator = SamAutomaticMaskGenerator(self._model, **self.generator_options).generate
+            except TypeError as exc:  # a misspelt generator option
+                raise AnalysisInputError("generator_options", str(exc)) from exc
         return self._generator
 
     def label_image(self, image: np.ndarray, background: np.ndarray | None) -> np.ndarray:

@@ -84,6 +84,7 @@ class SpectralSegmentation:
     n_foreground: int = 0
     unreliable: np.ndarray | None = None  # bool (H, W): saturated or near-black, kept out of the fit
     bands: tuple[int, ...] = ()  # bands the features used (clipped bands left out); () = all
+    fit: np.ndarray | None = None  # bool (H, W): the pixels the mixture was fitted on
 
 
 ForegroundRule = Literal["backdrop", "otsu"]
@@ -460,4 +461,4 @@ class SpectralSegmenter:
         if rel is None:
             return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)
         return SpectralSegmentation(labels, n_used, threshold, bic, n_fg, rel.unreliable,
-                                    tuple(int(b) for b in rel.bands))
+                                    tuple(int(b) for b in rel.bands), fit)

@@ -1,9 +1,10 @@
 """Calibration captures: the dark library over the exposures a sweep uses, the white reference
 (checked, written to the calibration file with its provenance) and the mosaic phase check.
 
-Each needs an idle rig (409 while a session owns it). On a real rig the operator confirms the
-lens cap (darks) or the white panel (white reference) in the request; a simulated rig caps its
-own lens and puts its own panel in view.
+Each needs an idle rig (409 while a session owns it) and runs once at a time (409 while the same
+capture runs: a second click does not run it twice, :mod:`m2s2hil.daemon.busy`). On a real rig
+the operator confirms the lens cap (darks) or the white panel (white reference) in the request;
+a simulated rig caps its own lens and puts its own panel in view.
 """
 
 from __future__ import annotations
@@ -55,7 +56,8 @@ def take_darks(mg: Manager, console: ConsoleDep, body: cm.DarksIn) -> dict[str, 
     """Master darks at every (exposure, gain) given, or that the plan in ``plan`` uses."""
     if not mg.rig.simulated and not body.lens_capped:
         raise UsageError("body.lens_capped: put the lens cap on and confirm it (lens_capped: true)")
-    with mg.guard.manual_access("taking darks") as rig, device_errors("the dark capture"):
+    with (mg.busy.claim("darks", "a dark capture"), mg.guard.manual_access("taking darks") as rig,
+          device_errors("the dark capture")):
         console.camera.release(rig)
         if body.exposures:
             pairs = [(e.exposure_s, e.gain) for e in body.exposures]
@@ -76,7 +78,8 @@ def take_white(mg: Manager, console: ConsoleDep, body: cm.WhiteIn) -> dict[str, 
     it to the calibration file; a failed check (422) writes nothing."""
     if not mg.rig.simulated and not body.panel_in_place:
         raise UsageError("body.panel_in_place: put the white panel in view and confirm it")
-    with mg.guard.manual_access("the white reference") as rig, device_errors("the white reference"):
+    with (mg.busy.claim("white", "a white reference capture"),
+          mg.guard.manual_access("the white reference") as rig, device_errors("the white reference")):
         console.camera.release(rig)
         _, prov = capture_white_reference(
             rig, console.calibration_path, exposure_s=body.exposure_s, gain=body.gain,
@@ -91,6 +94,7 @@ def take_white(mg: Manager, console: ConsoleDep, body: cm.WhiteIn) -> dict[str, 
 @router.post("/calibration/phase", responses={**CONFLICT, **CROSS_SITE})
 def phase(mg: Manager, console: ConsoleDep, body: cm.PhaseIn) -> dict[str, Any]:
     """One frame; does the mosaic's origin match the layout? (a readout offset shows here)."""
-    with mg.guard.manual_access("the phase check") as rig, device_errors("the phase check"):
+    with (mg.busy.claim("phase", "a phase check"), mg.guard.manual_access("the phase check") as rig,
+          device_errors("the phase check")):
         console.camera.release(rig)
         return check_mosaic_phase(rig, exposure_s=body.exposure_s, gain=body.gain)

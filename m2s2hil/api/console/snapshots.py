@@ -31,7 +31,8 @@ def take_snapshot(mg: Manager, console: ConsoleDep, body: cm.SnapshotIn) -> dict
     s = console.live.settings
     exposure = body.exposure_s or s.exposure_s
     gain = body.gain if body.gain is not None else s.gain
-    with mg.guard.manual_access("a snapshot") as rig, device_errors("the snapshot"):
+    with (mg.busy.claim("snapshot", "a snapshot"), mg.guard.manual_access("a snapshot") as rig,
+          device_errors("the snapshot")):
         console.camera.release(rig)
         rig.camera.configure(exposure_s=exposure, gain=gain)
         frame = rig.camera.snap(timeout=exposure + rig.config.camera.timeout_s)

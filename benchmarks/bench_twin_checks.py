@@ -1,0 +1,148 @@
+"""The twin's checks during the sweep: detection and false-alarm rates, and their cost.
+
+    nice -n 10 .venv/bin/python benchmarks/bench_twin_checks.py [--size 512] [--out /tmp/twin_checks.json]
+
+matrix   perturbation × magnitude × satellite × lighting. A cell is the first three frames of
+         a lighting (azimuths 0, 10, 20 deg at E1, as a sweep takes them) on the simulated rig
+         set up wrong by the rig file's ``[simulation]`` section; it is *detected* when any of
+         the three carries the perturbation's flag. Perturbations: off the axis along x
+         (across the view at azimuth 0) and along y (along the line of sight at azimuth 0) by
+         1, 2, 4 mm; yaw at azimuth 0 by 2, 4 deg; a tilt bias of 1, 2 deg; the wrong build
+         on the turntable; a dead lamp (the second lamp of the lighting); a lamp at half output.
+nominal  3 satellites × 3 builds × 3 lightings set up right: a false alarm is any twin flag
+         on any of the cell's three frames.
+cost     the checks on one 2048² frame's 512² cube (reduced to 96 px), and what they add per
+         frame of a 36-azimuth pass when they run on the first 3 frames and every 8th after.
+
+Frames come from ``m2s2hil.twin.simulated.SimBench`` at ``--size`` (512² → a 128² cube: the
+checks reduce every cube to 96 px, so a 2048² frame gives them the same pixels, from a
+cleaner mask). Timings are wall-clock on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from typing import Any
+
+from m2s2hil.catalog import load_catalog
+from m2s2hil.hostinfo import describe_machine
+from m2s2hil.twin.checks import CheckConfig, sweep_checks
+from m2s2hil.twin.simulated import SimBench, rig_with
+
+SATS = ("voyager", "iss", "hubble")
+LIGHTS = ("weak", "strong", "directional")
+AZ = (0.0, 10.0, 20.0)
+TWIN_FLAGS = {"off_axis", "yawed", "tilt_off", "tilt_drift", "wrong_mockup", "wrong_build", "lamp_out", "lamp_dim"}
+WRONG = {"B1": "B3", "B2": "B1", "B3": "B1"}  # what stands there instead of the session's build
+
+
+def perturbations() -> list[tuple[str, float, dict[str, Any], set[str]]]:
+    out: list[tuple[str, float, dict[str, Any], set[str]]] = []
+    for mm in (1.0, 2.0, 4.0):
+        out.append(("offset_x_mm", mm, {"mount": {"offset_mm": [mm, 0.0]}}, {"off_axis"}))
+        out.append(("offset_y_mm", mm, {"mount": {"offset_mm": [0.0, mm]}}, {"off_axis"}))
+    for deg in (2.0, 4.0):
+        out.append(("yaw_deg", deg, {"mount": {"yaw_deg": deg}}, {"yawed"}))
+    for deg in (1.0, 2.0):
+        out.append(("tilt_bias_deg", deg, {"mount": {"tilt_bias_deg": deg}}, {"tilt_off"}))
+    out.append(("wrong_build", 1.0, {}, {"wrong_build"}))
+    out.append(("dead_lamp", 0.0, {}, {"lamp_out"}))
+    out.append(("dim_lamp", 0.5, {}, {"lamp_dim", "lamp_out"}))
+    return out
+
+
+def run_cell(sim: dict[str, Any], sat: str, build: str, light: str, size: int) -> tuple[list[list[str]], list[float]]:
+    rig = rig_with(size, **sim)
+    bench = SimBench(rig)
+    chk = sweep_checks(type("S", (), {"satellite": sat, "build": build})(), rig, CheckConfig())
+    flags, cost = [], []
+    for az in AZ:
+        f = bench.frame(sat, build, light, az, 0.0)
+        r = chk.checks.check(f.cube, sat, build, az, 0.0, f.meta["lamps_on"], f.meta["exposure_s"])
+        flags.append(list(r["flags"]))
+        cost.append(float(r["elapsed_s"]))
+    return flags, cost
+
+
+def matrix(size: int) -> dict[str, Any]:
+    rig0 = rig_with(size)
+    rows = []
+    costs: list[float] = []
+    for name, mag, sim, expect in perturbations():
+        for sat in SATS:
+            for light in LIGHTS:
+                s = dict(sim)
+                build = "B3"
+                if name == "wrong_build":
+                    s = {"mount": {"build": WRONG[build]}}
+                elif name in ("dead_lamp", "dim_lamp"):
+                    lamp = next(n for n, lc in rig0.lamps.items()
+                                if lc.channel == rig0.lamp_channels(light)[min(1, len(rig0.lamp_channels(light)) - 1)])
+                    s = {"lamps": {lamp: mag}}
+                flags, cost = run_cell(s, sat, build, light, size)
+                costs += cost
+                first = next((i + 1 for i, f in enumerate(flags) if expect & set(f)), None)
+                rows.append({"perturbation": name, "magnitude": mag, "satellite": sat, "lighting": light,
+                             "detected": first is not None, "first_frame": first, "flags": flags})
+                print(name, mag, sat, light, "detected" if first else "MISSED", flags, flush=True)
+    nominal = []
+    cat = load_catalog()
+    for sat in SATS:
+        for build in cat.satellite(sat).builds:
+            for light in LIGHTS:
+                flags, cost = run_cell({}, sat, build, light, size)
+                costs += cost
+                alarms = sorted({f for fl in flags for f in fl if f in TWIN_FLAGS})
+                nominal.append({"satellite": sat, "build": build, "lighting": light, "false_alarm": bool(alarms),
+                                "flags": flags})
+                print("nominal", sat, build, light, alarms or "ok", flush=True)
+    return {"cells": rows, "nominal": nominal, "check_s": costs}
+
+
+def cost_2048() -> dict[str, float]:
+    rig = rig_with(2048)
+    bench = SimBench(rig)
+    chk = sweep_checks(type("S", (), {"satellite": "hubble", "build": "B2"})(), rig, CheckConfig())
+    times = []
+    for az in (0.0, 40.0, 80.0, 120.0, 160.0):
+        f = bench.frame("hubble", "B2", "weak", az, 0.0)
+        t0 = time.perf_counter()
+        chk.checks.check(f.cube, "hubble", "B2", az, 0.0, f.meta["lamps_on"], f.meta["exposure_s"])
+        times.append(time.perf_counter() - t0)
+    per = statistics.median(times)
+    share = (3 + (36 - 3) // 8) / 36  # first 3 frames of a pass, then every 8th
+    return {"check_ms_median": per * 1e3, "check_ms_max": max(times) * 1e3,
+            "added_ms_per_frame": per * share * 1e3, "checked_share": share}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--out", default="/tmp/twin_checks.json")
+    args = ap.parse_args()
+    t0 = time.time()
+    res = matrix(args.size)
+    res["cost_2048"] = cost_2048()
+    res["machine"] = describe_machine()
+    res["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    res["wall_s"] = time.time() - t0
+    summary: dict[str, Any] = {}
+    for r in res["cells"]:
+        key = f"{r['perturbation']} {r['magnitude']:g}"
+        d = summary.setdefault(key, [0, 0])
+        d[0] += r["detected"]
+        d[1] += 1
+    res["summary"] = {k: f"{a}/{n}" for k, (a, n) in summary.items()}
+    fa = sum(n["false_alarm"] for n in res["nominal"])
+    res["false_alarms"] = f"{fa}/{len(res['nominal'])}"
+    with open(args.out, "w") as fh:
+        json.dump(res, fh, indent=1)
+    print(json.dumps({k: res[k] for k in ("summary", "false_alarms", "cost_2048", "machine", "date", "wall_s")},
+                     indent=1))
+
+
+if __name__ == "__main__":
+    main()

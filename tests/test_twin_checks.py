@@ -1,0 +1,115 @@
+"""The simulated rig's perturbations (``[simulation.mount]``, ``[simulation.lamps]``) and the
+twin's checks during the sweep: flags in the frame's QC, and the fault policy pausing on them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from engine_helpers import session, small_sweep, wait_for_state
+
+from m2s2hil.analysis.qc import capture_qc_hook
+from m2s2hil.config import load_rig
+from m2s2hil.engine.fault_policy import FaultPolicy
+from m2s2hil.engine.state import RunState
+from m2s2hil.errors import ConfigError
+from m2s2hil.twin.checks import CheckConfig, sweep_checks
+from m2s2hil.twin.simulated import SimBench, rig_with
+
+DEFAULT_RIG = Path(__file__).resolve().parents[1] / "m2s2hil" / "data" / "default_rig.toml"
+
+
+@pytest.mark.parametrize(("section", "key"), [
+    ("[simulation.lamps]\nbarX = 0.5\n", "simulation.lamps.barX"),
+    ("[simulation.lamps]\nbar1 = 1.5\n", "simulation.lamps.bar1"),
+    ("[simulation.mount]\nbuild = \"B7\"\n", "simulation.mount.build"),
+    ("[simulation.mount]\nyaw_deg = 400\n", "simulation.mount.yaw_deg"),
+    ("[simulation.mount]\nsatellite = \"hubble\"\nbuild = \"B4\"\n", "simulation.mount.build"),
+    ("[simulation.mount]\noffset_mm = [1.0]\n", "simulation.mount.offset_mm"),
+])
+def test_bad_perturbation_is_one_typed_error_naming_the_key(tmp_path: Path, section: str, key: str) -> None:
+    rig = tmp_path / "rig.toml"
+    rig.write_text(DEFAULT_RIG.read_text() + "\n" + section)
+    with pytest.raises(ConfigError) as exc:
+        load_rig(rig)
+    assert exc.value.key.startswith(key) and str(rig) in str(exc.value)
+
+
+def _centroid(labels: np.ndarray) -> np.ndarray:
+    ys, xs = np.nonzero(labels)
+    return np.array([xs.mean(), ys.mean()])
+
+
+def test_perturbations_change_the_simulated_frames() -> None:
+    size = 128
+    nominal = SimBench(rig_with(size))
+    base = nominal.frame("voyager", "B3", "weak", 0.0, 0.0, exposure_s=0.02, process=False)
+    # Off the axis by 8 mm along x: the silhouette moves right by 8 mm in pixels at azimuth 0.
+    moved = SimBench(rig_with(size, mount={"offset_mm": [8.0, 0.0]})).frame("voyager", "B3", "weak", 0, 0,
+                                                                           exposure_s=0.02, process=False)
+    px_per_mm = 2 * 0.45 * size / 160.0
+    dx, dy = _centroid(moved.truth.labels) - _centroid(base.truth.labels)
+    assert dx == pytest.approx(8.0 * px_per_mm, abs=0.6) and abs(dy) < 0.6
+    # Yawed 20 deg at azimuth 0 looks like the nominal mockup turned to 20 deg; a tilt bias likewise.
+    yawed = SimBench(rig_with(size, mount={"yaw_deg": 20.0})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    turned = nominal.frame("voyager", "B3", "weak", 20.0, 0.0, exposure_s=0.02, process=False)
+    assert np.array_equal(yawed.truth.labels, turned.truth.labels)
+    assert not np.array_equal(yawed.truth.labels, base.truth.labels)
+    biased = SimBench(rig_with(size, mount={"tilt_bias_deg": 5.0})).frame("voyager", "B3", "weak", 0, 0,
+                                                                        exposure_s=0.02, process=False)
+    assert np.array_equal(biased.truth.labels, nominal.frame("voyager", "B3", "weak", 0, 5.0,
+                                                             exposure_s=0.02, process=False).truth.labels)
+    assert biased.truth.tilt_deg == 0.0  # the truth keeps the stage's read-back
+    # The wrong build: another build is on the turntable, whatever the session mounted.
+    wrong = SimBench(rig_with(size, mount={"build": "B1"})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    assert wrong.truth.build == "B1" and wrong.truth.class_names == ["background", "pro_silver"]
+    # A dead lamp, a dim one: less light on the same scene.
+    dead = SimBench(rig_with(size, lamps={"bar1": 0.0})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    dim = SimBench(rig_with(size, lamps={"bar1": 0.5})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    total = [float(f.truth.signal().sum()) for f in (base, dim, dead)]
+    assert total[0] > total[1] > total[2] > 0.3 * total[0]
+    assert np.array_equal(dead.truth.labels, base.truth.labels)
+
+
+@pytest.fixture(scope="module")
+def checked() -> dict[str, list[str]]:
+    """Flags of one frame per case on a 384² sensor (96² cube), voyager B3 in weak light."""
+    out = {}
+    cases = {"nominal": {}, "off_axis": {"mount": {"offset_mm": [3.0, 0.0]}},
+             "tilt": {"mount": {"tilt_bias_deg": 3.0}}, "wrong_build": {"mount": {"build": "B1"}},
+             "dead_lamp": {"lamps": {"bar2": 0.0}}}
+    for name, sim in cases.items():
+        rig = rig_with(384, **sim)
+        f = SimBench(rig).frame("voyager", "B3", "weak", 60.0, 0.0)
+        chk = sweep_checks(small_sweep(), rig, CheckConfig(size=96))
+        res = chk.checks.check(f.cube, "voyager", "B3", 60.0, 0.0, f.meta["lamps_on"], f.meta["exposure_s"])
+        out[name] = res["flags"]
+    return out
+
+
+def test_checks_flag_what_the_rig_perturbs(checked: dict[str, list[str]]) -> None:
+    assert checked["nominal"] == []
+    assert "off_axis" in checked["off_axis"]
+    assert "tilt_off" in checked["tilt"]
+    assert "wrong_build" in checked["wrong_build"]
+    assert "lamp_out" in checked["dead_lamp"]
+
+
+def test_checks_run_on_the_first_frames_of_a_lighting_then_every_nth() -> None:
+    chk = sweep_checks(small_sweep(), rig_with(256), CheckConfig(size=32, first_frames=2, every=3))
+    due = [chk.due(("weak", "E1")) for _ in range(8)] + [chk.due(("strong", "E1")) for _ in range(3)]
+    assert due == [True, True, False, False, True, False, False, True, True, True, False]
+
+
+def test_the_fault_policy_pauses_on_a_twin_flag_and_the_frame_keeps_it(tmp_path: Path) -> None:
+    rig = rig_with(256, mount={"build": "B1"})  # the session says B3, B1 stands there
+    qc = capture_qc_hook(twin=True)
+    with session(tmp_path, small_sweep(), config=rig, qc=qc, policy=FaultPolicy(qc_pause=("wrong_build",))) as s:
+        s.engine.start()
+        wait_for_state(s.engine, RunState.PAUSED, timeout=120)
+        flagged = [f for f in s.store.frames() if "wrong_build" in f.meta["qc"]["flags"]]
+        assert flagged and "twin" in flagged[0].meta["qc"]
+        assert "wrong_build" in flagged[0].meta["qc"]["twin"]["flags"]
+        assert qc.summary()["flag_counts"]["wrong_build"] >= 1
+        s.engine.abort()

@@ -1,0 +1,74 @@
+"""Registration of the twin to captured frames: the placement the simulated rig was given is
+the one found, within the fit's resolution; a stored session's registration is kept and shown."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from engine_helpers import session, small_sweep
+
+from m2s2hil.twin.projection import Placement
+from m2s2hil.twin.registration import (
+    IncrementalRegistration,
+    Observation,
+    Registrar,
+    RegistrationError,
+    Registration,
+    azimuth_span,
+    register_session,
+    stored_registration,
+)
+from m2s2hil.twin.simulated import SimBench, rig_with
+
+TRUE = Placement(dx_mm=5.0, dy_mm=-4.0, yaw_deg=6.0, tilt_bias_deg=2.0)
+
+
+@pytest.fixture(scope="module")
+def observations() -> list[Observation]:
+    rig = rig_with(256, mount={"offset_mm": [TRUE.dx_mm, TRUE.dy_mm], "yaw_deg": TRUE.yaw_deg,
+                               "tilt_bias_deg": TRUE.tilt_bias_deg})
+    bench = SimBench(rig)
+    # At E0 (15 deg): at a tilt of 0 a small tilt bias barely changes the silhouette (docs/twin.md).
+    return [Observation.from_cube("hubble", "B2", az, 15.0, bench.frame("hubble", "B2", "weak", az, 15.0).cube)
+            for az in (0.0, 60.0, 120.0, 180.0, 240.0, 300.0)]
+
+
+def test_registration_finds_the_placement_the_rig_was_given(observations: list[Observation]) -> None:
+    reg = Registrar(rig_with(256).camera.model, levels=((32, 1.2), (64, 0.7))).register(observations)
+    p = reg.placement
+    # 1 px of the 64² cube is 1.6 mm: the fit resolves a fraction of it.
+    assert math.hypot(p.dx_mm - TRUE.dx_mm, p.dy_mm - TRUE.dy_mm) < 1.5
+    assert abs(p.yaw_deg - TRUE.yaw_deg) < 2.0 and abs(p.tilt_bias_deg - TRUE.tilt_bias_deg) < 1.5
+    assert reg.residual < 0.2 and reg.frames == 6 and reg.azimuth_span_deg == pytest.approx(300.0)
+    assert Registration.from_dict(reg.as_dict()).placement.as_dict() == p.as_dict()
+
+
+def test_incremental_registration_waits_for_enough_azimuth(observations: list[Observation]) -> None:
+    inc = IncrementalRegistration(Registrar(rig_with(256).camera.model, levels=((32, 1.2),), max_nfev=4),
+                                  min_span_deg=100.0, every=2)
+    assert inc.add(observations[0]) is None and inc.add(observations[1]) is None  # 60 deg seen
+    first = inc.add(observations[2])
+    assert first is not None and first.frames == 3
+    assert inc.add(observations[3]) is first  # not due again yet
+
+
+def test_azimuth_span_and_refusals() -> None:
+    assert azimuth_span([350.0, 10.0]) == pytest.approx(20.0)
+    assert azimuth_span([0.0]) == 0.0
+    with pytest.raises(RegistrationError):
+        Registrar(rig_with(256).camera.model).register([])
+
+
+def test_a_sessions_registration_is_stored_and_read_back(tmp_path: Path) -> None:
+    rig = rig_with(256, mount={"offset_mm": [6.0, 0.0]})
+    with session(tmp_path, small_sweep(satellite="hubble", build="B2"), config=rig) as s:
+        s.engine.start()
+        s.engine.wait(timeout=120)
+        assert stored_registration(s.store) is None
+        reg = register_session(s.store, Registrar(rig.camera.model, levels=((32, 1.2), (64, 0.7))))
+        stored = stored_registration(s.store)
+    assert stored is not None and stored["source"] == "session"
+    assert stored["placement"]["dx_mm"] == pytest.approx(reg.placement.dx_mm, abs=1e-3)
+    assert reg.placement.dx_mm == pytest.approx(6.0, abs=2.0)
