@@ -25,6 +25,9 @@ from m2s2hil.drivers.errors import DeviceTimeout, MoveNotVerified, MoveStalled, 
 from m2s2hil.drivers.motion_watch import PLAN_MARGIN, STALL_WINDOW_S, ProgressWatch, trapezoid_s
 from m2s2hil.drivers.serial_link import SerialLink
 
+#: How long after a move's planned end the first poll for its arrival goes out (clock rounding).
+ARRIVAL_MARGIN_S = 0.001
+
 T = TypeVar("T")
 E = TypeVar("E")
 
@@ -201,11 +204,17 @@ class RotaryAxisBase(ABC):
             min_progress=self.tolerance_deg / 10, target=target, margin=self.timeout_margin,
         )
 
-    def _await_arrival(self, start: float, target: float, command: str) -> None:
+    def _await_arrival(self, start: float, target: float, command: str, since: float | None = None) -> None:
         """Poll until the controller says the axis stands; MoveStalled when it stops progressing
-        towards ``target`` for the stall window while still said to move (it is stopped first)."""
+        towards ``target`` for the stall window while still said to move (it is stopped first).
+
+        The polls are timed to the planned arrival (the trapezoid from ``start``, commanded at
+        ``since``, by default now): one lands just after it, then a few at a fifth of the
+        interval, so a move's end is seen within milliseconds rather than up to a whole
+        ``poll_interval_s`` late (at 50 ms, ~25 ms lost per move on average)."""
         watch = self._watch(start, target)
         owner, overdue_logged = self._owner, False
+        arrive = (owner.clock.monotonic() if since is None else since) + watch.planned_s + ARRIVAL_MARGIN_S
         while True:
             moving, position, state = self._motion_state()
             if not moving:
@@ -225,7 +234,13 @@ class RotaryAxisBase(ABC):
                     "%s: move to %.4f° longer than planned (%.3g s), still progressing at %.4f°: waiting",
                     self.name, target, watch.planned_s, position,
                 )
-            owner.clock.sleep(owner.poll_interval_s)
+            left = arrive - owner.clock.monotonic()
+            if left > 0:
+                owner.clock.sleep(min(owner.poll_interval_s, left))
+            elif left > -2 * owner.poll_interval_s:
+                owner.clock.sleep(owner.poll_interval_s / 5)
+            else:
+                owner.clock.sleep(owner.poll_interval_s)
 
     def _stop_quietly(self) -> None:
         """Stop a stalled axis before reporting it; the stall is the error worth raising."""
@@ -244,12 +259,13 @@ class RotaryAxisBase(ABC):
         assert start is not None
         return self.finish_move(start, degrees, command)
 
-    def finish_move(self, start: float, degrees: float, command: str = "") -> float:
+    def finish_move(self, start: float, degrees: float, command: str = "",
+                    since: float | None = None) -> float:
         """The second half of ``move_to(degrees)`` after a ``move_to(degrees, wait=False)``
-        from ``start``: wait for it as ``move_to`` waits (MoveStalled) and verify the
-        read-back (MoveNotVerified), without commanding it again (a move that ended short
-        must not be hidden by a second one)."""
-        self._await_arrival(start, degrees, command or f"move to {degrees:g}")
+        from ``start`` (commanded at clock time ``since``): wait for it as ``move_to`` waits
+        (MoveStalled) and verify the read-back (MoveNotVerified), without commanding it again
+        (a move that ended short must not be hidden by a second one)."""
+        self._await_arrival(start, degrees, command or f"move to {degrees:g}", since)
         if self.settle_s:
             self._owner.clock.sleep(self.settle_s)
         actual = self.position()

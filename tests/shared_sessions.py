@@ -137,3 +137,22 @@ def synthetic_session_of(shared: SharedSessions, satellite: str = "hubble", buil
         return Written(root, res.session_id)
 
     return shared.get(f"synthetic-{satellite}-{build}", make)
+
+
+def hil_with_labels(root) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Hubble B2, weak light, E0 × azimuths 0 and 180, each frame with a truth mask and projected labels."""
+    sweep = Sweep(satellite="hubble", build="B2", lighting=["weak"], tilts=["E0"], azimuth_step_deg=180,
+                  dark={"frames": 1})
+    labels = {}
+    with SessionStore.create(root, sweep, small_rig()) as st:
+        rng = np.random.default_rng(7)
+        for ev in sweep.expand(st.rig):
+            if ev.kind == "dark":
+                st.write_dark(ev, np.full((N, N), 3.0, np.float32))
+                continue
+            truth = rng.integers(0, 5, (N, N), dtype=np.uint8)
+            projected = np.roll(truth, 1, axis=1)
+            labels[ev.event_id] = (truth, projected)
+            st.write_frame(ev, rng.integers(0, 1024, (N, N), dtype=np.uint16),
+                           extra={"truth_labels": truth, "projected_labels": projected})
+        return st.session_id, labels

@@ -29,7 +29,9 @@ ENDLESS = {"/camera/live.mjpeg"}
 #: (its lamp names) or on the picture (a white reference that saturates or is too dim).
 RIG_DEPENDENT = ["set_lamps", "take_white",
                  # the soft limits, the homing policy, the number of bands are the rig file's
-                 "go_to", "jog", "set_origin", "home_axis", "update_live"]
+                 "go_to", "jog", "set_origin", "home_axis", "update_live",
+                 # a point or region outside the sensor (its size is the rig's)
+                 "frame_spectrum", "live_spectrum"]
 #: A sweep that is valid JSON-Schema-wise may still be refused with 422: the frame limit
 #: (a product of list lengths and the azimuth step), the builds a satellite has and what the
 #: rig can reach depend on the configuration, which a schema cannot state.

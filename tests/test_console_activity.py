@@ -73,7 +73,8 @@ def test_faults_retries_state_changes_and_a_failed_session_are_logged(d) -> None
     held = d.client.get("/activity", params={"since": since, "kind": "queue"}).json()["items"]
     assert any("queue held" in a["message"] for a in held)
     d.client.post("/queue/release")
-    last = d.client.get("/activity", params={"since": since, "kind": "queue,action"}).json()["items"][-2:]
+    page = d.client.get("/activity", params={"since": since, "kind": ["queue", "action"]}).json()
+    last = page["items"][-2:]
     assert "queue released" in last[0]["message"] and "POST /queue/release → 200" in last[1]["message"]
 
 

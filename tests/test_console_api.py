@@ -92,7 +92,10 @@ def test_lamp_presets_and_single_lamps(d) -> None:
 
 def test_manual_control_is_refused_while_a_session_owns_the_rig(d) -> None:
     sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
-    d.wait_state(sid, "running")
+    d.wait(sid, lambda st: st["state"] == "running" and st["done"] >= 2)  # past its darks: lamps on
+    assert d.client.get("/queue").json()["rig"] == "running"
+    # the lamps the session switched on, not "none" (the axes card read the devices only when idle)
+    assert d.client.get("/rig/axes").json()["lamps_on"] == ["bar1", "bar2", "bar3"]
     r = d.client.post("/rig/axes/turntable/jog", json={"delta_deg": 5})
     assert r.status_code == 409 and sid in r.json()["detail"]
     assert d.client.put("/rig/lamps", json={"preset": None}).status_code == 409
@@ -198,6 +201,15 @@ def test_snapshot_is_stored_outside_sessions_and_downloadable(d) -> None:
     assert d.client.get("/snapshots/20990101T000000-abcdef").status_code == 404
     assert d.client.get("/snapshots/..%2F..%2Fetc").status_code in (404, 422)
     assert not any(p.name == "snapshots" for p in d.root.glob("*/snapshots"))  # not inside a session
+    running = d.manager.busy.start("snapshot", "a snapshot")  # as if a first click's were still running
+    try:
+        assert [b["key"] for b in d.client.get("/busy").json()["items"]] == ["snapshot"]
+        assert [b["key"] for b in d.client.get("/rig/axes").json()["busy"]] == ["snapshot"]
+        again = d.client.post("/snapshots", json={})
+        assert again.status_code == 409 and "already running" in again.json()["detail"]
+    finally:
+        d.manager.busy.end(running)
+    assert d.client.get("/busy").json()["items"] == []
 
 
 def test_calibration_darks_white_reference_and_phase(d) -> None:
@@ -255,11 +267,38 @@ def test_session_browser_reads_without_writing(d) -> None:
         "content-security-policy"].replace("script-src", "")
     v = d.client.get(f"/sessions/{sid}/verify").json()
     assert v["ok"] is True and v["frames"] == 4
+    st = d.client.get(f"/sessions/{sid}").json()  # captures = frames + darks, each counted apart
+    assert (st["planned_frames"], st["planned_darks"]) == (4, st["total"] - 4) and st["planned_darks"] >= 1
     e = d.client.post(f"/sessions/{sid}/export", json={"layout": "m2s2"})
     assert e.status_code == 201, e.text
     assert e.json()["images"] == 4 and Path(e.json()["folder"]).is_dir()
     z = d.client.post(f"/sessions/{sid}/export", json={"layout": "zarr"})
     assert z.status_code == 201 and z.json()["images"] == 4, z.text
+    assert d.client.get("/queue").json()["rig"] == "idle"
+    # an export as a job: answered at once, followed, then downloaded as a zip
+    job = d.client.post(f"/sessions/{sid}/export/jobs", json={"layout": "m2s2", "overwrite": True})
+    assert job.status_code == 202, job.text
+    deadline = time.monotonic() + 60
+    while (j := d.client.get(job.json()["url"]).json())["state"] == "running":
+        assert time.monotonic() < deadline, j
+        time.sleep(0.05)
+    assert j["state"] == "done" and j["result"]["images"] == 4 and j["download_url"], j
+    dl = d.client.get(j["download_url"])
+    assert dl.status_code == 200 and dl.headers["content-type"] == "application/zip"
+    assert f'filename="{sid}-m2s2.zip"' in dl.headers["content-disposition"]
+    import io
+    import zipfile
+
+    names = zipfile.ZipFile(io.BytesIO(dl.content)).namelist()
+    exported = [p for p in Path(e.json()["folder"]).rglob("*") if p.is_file()]
+    assert len(names) == len(exported) and all(n.startswith(f"{sid}-m2s2/") for n in names)
+    assert d.client.get(f"/sessions/{sid}/export/hf.zip").status_code == 404  # never exported
+    claim = d.manager.busy.start(f"export:{sid}:m2s2", "an export")
+    try:
+        busy = d.client.post(f"/sessions/{sid}/export/jobs", json={"layout": "m2s2"})
+        assert busy.status_code == 409 and "already running" in busy.json()["detail"]
+    finally:
+        d.manager.busy.end(claim)
     after = {p: p.stat().st_mtime_ns for p in folder.rglob("*") if p.is_file()}
     assert {p for p in after if "journal" not in p.name} == {p for p in before if "journal" not in p.name}
     assert all(after[p] == before[p] for p in before if p in after and "journal" not in p.name)

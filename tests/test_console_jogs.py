@@ -71,6 +71,7 @@ def test_twenty_concurrent_jogs_end_at_their_sum(http: httpx.Client) -> None:
     targets = sorted(r.json()["target_deg"] for r in rs)
     assert targets == pytest.approx([start + k for k in range(1, 21)])  # each one degree further
     assert wait_idle(http, "turntable") == pytest.approx(start + 20, abs=0.05)
+    assert axis(http, "turntable")["target_deg"] == pytest.approx(start + 20)  # where the next jog starts
 
 
 def test_a_jog_after_a_stop_or_a_refusal_starts_where_it_should(http: httpx.Client) -> None:

@@ -221,3 +221,18 @@ def test_observed_rho_beside_the_assumed_and_a_note_where_they_disagree():
     assert data["ISS"]["dice_mark"] == "**" and data["ISS"]["dice_mark_observed"] == ""
     assert data["ISS"]["dice_marks_agree"] == "False" and data["Voyager"]["dice_marks_agree"] == "True"
     assert float(data["ISS"]["dice_p_observed"]) == pytest.approx(dice.observed.p)
+
+
+def test_band_note_reports_how_stable_the_pca_pick_is():
+    from m2s2hil.analysis.evaluation.evaluate import band_report
+
+    rng = np.random.default_rng(5)
+    samples = [rng.normal(size=(60, 10)) * np.linspace(1, 3, 10) for _ in range(4)]
+    bands = band_report([{"pca_sample": s} for s in samples], EvalOptions())
+    st = bands["pca_stability"]
+    assert st["n_frames"] == 4 and st["bands"] == bands["pca_bands"]
+    assert sum(x["share"] for x in st["set_frequency"]) == pytest.approx(1.0)
+    recs = [rec(i, truth=False, mtc=0.9) for i in range(2)]
+    res = EvaluationResult(recs, EvalOptions(), ["s"], 1.0, {}, bands)
+    text = " ".join(table2.notes(res, table2.build_rows(recs, multi="spectral", rgb="rgb")))
+    assert f"recurs in {st['pick_frequency']:.0%} of {st['n_boot']} bootstrap resamples of the images" in text

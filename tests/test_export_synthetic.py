@@ -7,9 +7,8 @@ import csv
 import cv2
 import numpy as np
 import pytest
-from shared_sessions import N, small_rig, synthetic_session_of
+from shared_sessions import hil_with_labels, synthetic_session_of
 
-from m2s2hil.plan import Sweep
 from m2s2hil.store.export import export_session
 from m2s2hil.store.frame_files import decode_image
 from m2s2hil.store.session import SessionStore
@@ -18,25 +17,6 @@ from m2s2hil.store.session import SessionStore
 @pytest.fixture()
 def synth(shared_sessions):
     return synthetic_session_of(shared_sessions)
-
-
-def hil_with_labels(root) -> tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Hubble B2, weak light, E0 × azimuths 0 and 180, each frame with a truth mask and projected labels."""
-    sweep = Sweep(satellite="hubble", build="B2", lighting=["weak"], tilts=["E0"], azimuth_step_deg=180,
-                  dark={"frames": 1})
-    labels = {}
-    with SessionStore.create(root, sweep, small_rig()) as st:
-        rng = np.random.default_rng(7)
-        for ev in sweep.expand(st.rig):
-            if ev.kind == "dark":
-                st.write_dark(ev, np.full((N, N), 3.0, np.float32))
-                continue
-            truth = rng.integers(0, 5, (N, N), dtype=np.uint8)
-            projected = np.roll(truth, 1, axis=1)
-            labels[ev.event_id] = (truth, projected)
-            st.write_frame(ev, rng.integers(0, 1024, (N, N), dtype=np.uint16),
-                           extra={"truth_labels": truth, "projected_labels": projected})
-        return st.session_id, labels
 
 
 def test_m2s2_layout_puts_synthetic_beside_hil_with_masks_and_pairs(tmp_path, synth):

@@ -15,7 +15,7 @@ from m2s2hil.engine.fault_policy import FaultPolicy
 from m2s2hil.engine.state import RunState
 from m2s2hil.errors import ConfigError
 from m2s2hil.twin.checks import CheckConfig, sweep_checks
-from m2s2hil.twin.simulated import SimBench, rig_with
+from m2s2hil.twin.simulated import BenchFrame, SimBench, rig_with
 
 DEFAULT_RIG = Path(__file__).resolve().parents[1] / "m2s2hil" / "data" / "default_rig.toml"
 
@@ -36,6 +36,11 @@ def test_bad_perturbation_is_one_typed_error_naming_the_key(tmp_path: Path, sect
     assert exc.value.key.startswith(key) and str(rig) in str(exc.value)
 
 
+def _frame(size: int = 128, az: float = 0.0, tilt: float = 0.0, **sim: object) -> BenchFrame:
+    bench = SimBench(rig_with(size, **sim))
+    return bench.frame("voyager", "B3", "weak", az, tilt, exposure_s=0.02, process=False)
+
+
 def _centroid(labels: np.ndarray) -> np.ndarray:
     ys, xs = np.nonzero(labels)
     return np.array([xs.mean(), ys.mean()])
@@ -52,7 +57,7 @@ def test_perturbations_change_the_simulated_frames() -> None:
     dx, dy = _centroid(moved.truth.labels) - _centroid(base.truth.labels)
     assert dx == pytest.approx(8.0 * px_per_mm, abs=0.6) and abs(dy) < 0.6
     # Yawed 20 deg at azimuth 0 looks like the nominal mockup turned to 20 deg; a tilt bias likewise.
-    yawed = SimBench(rig_with(size, mount={"yaw_deg": 20.0})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    yawed = _frame(mount={"yaw_deg": 20.0})
     turned = nominal.frame("voyager", "B3", "weak", 20.0, 0.0, exposure_s=0.02, process=False)
     assert np.array_equal(yawed.truth.labels, turned.truth.labels)
     assert not np.array_equal(yawed.truth.labels, base.truth.labels)
@@ -62,11 +67,11 @@ def test_perturbations_change_the_simulated_frames() -> None:
                                                              exposure_s=0.02, process=False).truth.labels)
     assert biased.truth.tilt_deg == 0.0  # the truth keeps the stage's read-back
     # The wrong build: another build is on the turntable, whatever the session mounted.
-    wrong = SimBench(rig_with(size, mount={"build": "B1"})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    wrong = _frame(mount={"build": "B1"})
     assert wrong.truth.build == "B1" and wrong.truth.class_names == ["background", "pro_silver"]
     # A dead lamp, a dim one: less light on the same scene.
-    dead = SimBench(rig_with(size, lamps={"bar1": 0.0})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
-    dim = SimBench(rig_with(size, lamps={"bar1": 0.5})).frame("voyager", "B3", "weak", 0, 0, exposure_s=0.02, process=False)
+    dead = _frame(lamps={"bar1": 0.0})
+    dim = _frame(lamps={"bar1": 0.5})
     total = [float(f.truth.signal().sum()) for f in (base, dim, dead)]
     assert total[0] > total[1] > total[2] > 0.3 * total[0]
     assert np.array_equal(dead.truth.labels, base.truth.labels)
@@ -104,8 +109,9 @@ def test_checks_run_on_the_first_frames_of_a_lighting_then_every_nth() -> None:
 
 def test_the_fault_policy_pauses_on_a_twin_flag_and_the_frame_keeps_it(tmp_path: Path) -> None:
     rig = rig_with(256, mount={"build": "B1"})  # the session says B3, B1 stands there
-    qc = capture_qc_hook(twin=True)
-    with session(tmp_path, small_sweep(), config=rig, qc=qc, policy=FaultPolicy(qc_pause=("wrong_build",))) as s:
+    qc = capture_qc_hook(twin=CheckConfig(confirm=1))
+    policy = FaultPolicy(qc_pause=("wrong_build",))
+    with session(tmp_path, small_sweep(), config=rig, qc=qc, policy=policy) as s:
         s.engine.start()
         wait_for_state(s.engine, RunState.PAUSED, timeout=120)
         flagged = [f for f in s.store.frames() if "wrong_build" in f.meta["qc"]["flags"]]

@@ -7,48 +7,43 @@ import math
 from pathlib import Path
 
 import pytest
+import twin_support
 from engine_helpers import session, small_sweep
+from twin_support import TRUE
 
-from m2s2hil.twin.projection import Placement
 from m2s2hil.twin.registration import (
     IncrementalRegistration,
     Observation,
     Registrar,
-    RegistrationError,
     Registration,
+    RegistrationError,
     azimuth_span,
     register_session,
     stored_registration,
 )
-from m2s2hil.twin.simulated import SimBench, rig_with
-
-TRUE = Placement(dx_mm=5.0, dy_mm=-4.0, yaw_deg=6.0, tilt_bias_deg=2.0)
+from m2s2hil.twin.simulated import rig_with
 
 
 @pytest.fixture(scope="module")
 def observations() -> list[Observation]:
-    rig = rig_with(256, mount={"offset_mm": [TRUE.dx_mm, TRUE.dy_mm], "yaw_deg": TRUE.yaw_deg,
-                               "tilt_bias_deg": TRUE.tilt_bias_deg})
-    bench = SimBench(rig)
-    # At E0 (15 deg): at a tilt of 0 a small tilt bias barely changes the silhouette (docs/twin.md).
-    return [Observation.from_cube("hubble", "B2", az, 15.0, bench.frame("hubble", "B2", "weak", az, 15.0).cube)
-            for az in (0.0, 60.0, 120.0, 180.0, 240.0, 300.0)]
+    return twin_support.observations()
 
 
 def test_registration_finds_the_placement_the_rig_was_given(observations: list[Observation]) -> None:
-    reg = Registrar(rig_with(256).camera.model, levels=((32, 1.2), (64, 0.7))).register(observations)
+    reg = twin_support.registered()
     p = reg.placement
-    # 1 px of the 64² cube is 1.6 mm: the fit resolves a fraction of it.
-    assert math.hypot(p.dx_mm - TRUE.dx_mm, p.dy_mm - TRUE.dy_mm) < 1.5
-    assert abs(p.yaw_deg - TRUE.yaw_deg) < 2.0 and abs(p.tilt_bias_deg - TRUE.tilt_bias_deg) < 1.5
-    assert reg.residual < 0.2 and reg.frames == 6 and reg.azimuth_span_deg == pytest.approx(300.0)
+    # 1 px of the 64² cube is 1.6 mm and four frames is few: the fit is good to about a pixel
+    # here (docs/benchmarks.md has the 512² figures); the start, on axis, is 6.4 mm and 6 deg off.
+    assert math.hypot(p.dx_mm - TRUE.dx_mm, p.dy_mm - TRUE.dy_mm) < 2.0
+    assert abs(p.yaw_deg - TRUE.yaw_deg) < 3.5 and abs(p.tilt_bias_deg - TRUE.tilt_bias_deg) < 1.5
+    assert reg.residual < 0.2 and reg.frames == 4 and reg.azimuth_span_deg == pytest.approx(270.0)
     assert Registration.from_dict(reg.as_dict()).placement.as_dict() == p.as_dict()
 
 
 def test_incremental_registration_waits_for_enough_azimuth(observations: list[Observation]) -> None:
     inc = IncrementalRegistration(Registrar(rig_with(256).camera.model, levels=((32, 1.2),), max_nfev=4),
                                   min_span_deg=100.0, every=2)
-    assert inc.add(observations[0]) is None and inc.add(observations[1]) is None  # 60 deg seen
+    assert inc.add(observations[0]) is None and inc.add(observations[1]) is None  # 90 deg seen
     first = inc.add(observations[2])
     assert first is not None and first.frames == 3
     assert inc.add(observations[3]) is first  # not due again yet
@@ -67,7 +62,7 @@ def test_a_sessions_registration_is_stored_and_read_back(tmp_path: Path) -> None
         s.engine.start()
         s.engine.wait(timeout=120)
         assert stored_registration(s.store) is None
-        reg = register_session(s.store, Registrar(rig.camera.model, levels=((32, 1.2), (64, 0.7))))
+        reg = register_session(s.store, Registrar(rig.camera.model, levels=((48, 1.0),)))
         stored = stored_registration(s.store)
     assert stored is not None and stored["source"] == "session"
     assert stored["placement"]["dx_mm"] == pytest.approx(reg.placement.dx_mm, abs=1e-3)

@@ -82,3 +82,54 @@ def test_synth_command_refuses_bad_input_in_one_line(tmp_path):
     assert len(r.stderr.strip().splitlines()) == 1
     r = run_cli("synth", "--sat", "hubble", "--build", "B2", "--size", "4", "--root", tmp_path)
     assert r.exit_code == 2 and "outside 16" in r.stderr
+
+
+class Threshold:
+    """A stand-in segmenter: foreground where the brightest channel passes half its maximum."""
+
+    name = "threshold"
+
+    def segment(self, cube: np.ndarray) -> np.ndarray:
+        top = cube.max(axis=0)
+        return (top > 0.5 * top.max()).astype(np.int64)
+
+
+def test_fused_bands_is_the_majority_of_bands_5_9_10(synth):
+    from m2s2hil.analysis.evaluation.synthetic import _cube, fused_bands
+
+    with synth.open() as st:
+        _, bands, _ = band_images(st, st.frames()[0].event_id)
+    seg = Threshold()
+    maps = [seg.segment(_cube(bands[b - 1])) for b in (5, 9, 10)]
+    expected = (np.sum(maps, axis=0) >= 2).astype(np.int64)
+    assert np.array_equal(fused_bands(seg, bands) > 0, expected > 0)
+    with pytest.raises(Exception, match="outside 1..10"):
+        fused_bands(seg, bands, (0, 5))
+
+
+def test_synthetic_columns_and_sim_to_real(tmp_path, synth):
+    from shared_sessions import hil_with_labels
+
+    from m2s2hil.analysis.evaluation.synthetic import evaluate_synthetic
+
+    sid, _ = hil_with_labels(tmp_path / "root")
+    out = tmp_path / "eval"
+    with synth.open() as st, SessionStore.open(tmp_path / "root", sid) as hil:
+        files = evaluate_synthetic(st, Threshold(), out, hil=hil)
+    rows = files["synthetic_table2.csv"].read_text().splitlines()
+    assert rows[0].startswith("satellite,build,classes,elevation,n,precision_rgb")
+    assert [row.split(",")[:5] for row in rows[1:]] == [["hubble", "B2", "5", e, "2"] for e in ("E0", "E3")]
+    for row in rows[1:]:
+        vals = [float(x) for x in row.split(",")[5:] if x != "nan"]
+        assert all(0.0 <= v <= 1.0 for v in vals) and len(vals) >= 6
+    pairs = files["sim_to_real.csv"].read_text().splitlines()
+    assert len(pairs) == 3 and {p.split(",")[1] for p in pairs[1:]} == {"0", "180"}
+    assert all(p.split(",")[4] == "truth_labels" for p in pairs[1:])
+    assert "| hubble | B2 | 5 | E3 | 2 |" in files["synthetic_table2.md"].read_text()
+
+
+@pytest.mark.slow
+def test_evaluate_command_gives_a_synthetic_session_its_columns(tmp_path, synth):
+    r = run_cli("evaluate", synth.path, "--out", tmp_path, "--limit", "1")
+    assert r.exit_code == 0, r.stderr
+    assert "| hubble | B2 | 5 | E0 | 1 |" in r.stdout and (tmp_path / "synthetic_table2.csv").is_file()

@@ -307,6 +307,7 @@ class CaptureQC:
     _scores: list[tuple[str, float, tuple[str, ...]]] = field(default_factory=list, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _checks: Any = field(default=None, repr=False)
+    _files: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def bind(self, sweep: Any, rig: Any) -> None:
         """The session the frames belong to (called by the engine when a run is built)."""
@@ -320,7 +321,13 @@ class CaptureQC:
             from dataclasses import replace
 
             cfg = replace(cfg, size=max(24, cube_side))
-        self._checks = sweep_checks(sweep, rig, cfg)
+        self._checks = sweep_checks(sweep, rig, cfg, register=True)
+
+    def frame_files(self, event: Any) -> dict[str, np.ndarray]:
+        """Arrays to store with the frame just scored (the engine asks after the hook ran):
+        the twin's projected labels once the sweep's registration has them."""
+        with self._lock:
+            return self._files.pop(str(getattr(event, "event_id", "?")), {})
 
     def __call__(self, processed: Any, event: Any, meta: Mapping[str, Any]) -> dict[str, Any]:
         res = capture_stability(
@@ -333,12 +340,18 @@ class CaptureQC:
         flags = res.flags
         if self._checks is not None:
             key = (getattr(event, "lighting", None), getattr(event, "elevation", None))
-            twin = self._checks(np.asarray(processed.cube), meta, key, getattr(processed, "saturated_mask", None))
+            sat = getattr(processed, "saturated_mask", None)
+            twin = self._checks(np.asarray(processed.cube), meta, key, sat)
             if twin is not None:
                 out["twin"] = twin
                 flags = (*flags, *(f for f in twin.get("flags", ()) if f not in flags))
                 out["flags"] = list(flags)
                 out["flagged"] = bool(flags)
+            labels = self._checks.labels(meta, np.shape(processed.cube)[1:])
+            if labels is not None:
+                out["projected_labels"] = labels.meta()
+                with self._lock:
+                    self._files[str(getattr(event, "event_id", "?"))] = {"projected_labels": labels.labels}
         with self._lock:
             self._scores.append((str(getattr(event, "event_id", "?")), res.score, flags))
         return out

@@ -48,13 +48,13 @@ from .console import browser, calibration, live, manual, page, pictures, snapsho
 from .guards.csrf import HEADER, CrossSiteGuard
 from .guards.hosts import HostAllowList
 from .guards.security import BodyLimit
-from .routes import activity, daemon, frames, lens, queue, rig, sessions
+from .routes import activity, daemon, exports, frames, lens, queue, rig, sessions
 from .streams import StreamLimits, Streams
 
 API_TITLE = "m2s2hil capture daemon"
 
 GUARDED_ROUTERS: list[APIRouter] = [sessions.router, frames.router, queue.router, rig.router, daemon.router,
-                                    lens.router, activity.router,
+                                    lens.router, activity.router, exports.router,
                                     # the operator console's (docs/console.md)
                                     manual.router, live.router, snapshots.router, calibration.router,
                                     browser.router, page.router, pictures.router]

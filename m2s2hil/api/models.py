@@ -59,7 +59,10 @@ class SessionStatus(_Out):
     build: str | None = None
     mode: str | None = None
     done: int = 0
-    total: int = 0
+    total: int = Field(0, description="Captures planned: lit frames and master darks (see planned_frames).")
+    planned_frames: int | None = Field(None, description="Of `total`, the lit frames (what the estimate and "
+                                                         "the frame list count).")
+    planned_darks: int | None = Field(None, description="Of `total`, the master darks.")
     skipped: int = 0
     progress: float = 0.0
     eta_s: float | None = None
@@ -133,6 +136,10 @@ class QueueState(_Out):
     held: str | None = Field(description="Why the queue is held (no session starts until released).")
     limit: int
     items: list[QueueEntry]
+    rig: Literal["running", "starting", "held", "queued", "idle"] = Field(
+        "idle", description="What the rig does, for display: a session running; one starting (taken from "
+                            "the queue, its engine not yet started); held; sessions waiting; idle.")
+    starting: str | None = Field(None, description="The session being started, if any.")
 
 
 class DeviceState(_Out):
@@ -228,3 +235,35 @@ class ActivityClients(_Out):
     others_connected: int
     others_controlling: int
     clients: list[ActivityClient]
+
+
+class ExportJobOut(_Out):
+    job_id: str
+    session_id: str
+    layout: Literal["m2s2", "hf", "zarr"]
+    state: Literal["running", "done", "failed"]
+    phase: Literal["starting", "exporting", "done", "failed"]
+    started: float
+    finished: float | None
+    elapsed_s: float
+    frames: int | None = Field(description="Frames the session had when the export started.")
+    result: dict[str, Any] | None = Field(description="folder, images, files, once done.")
+    error: str | None
+    url: str
+    download_url: str | None = Field(description="The export as a zip, once done.")
+
+
+class ExportJobs(_Out):
+    items: list[ExportJobOut]
+
+
+class BusyItem(_Out):
+    key: str = Field(description="snapshot, darks, white, phase, or export:<session>:<layout>.")
+    what: str
+    since_s: float
+    started: float
+    detail: dict[str, Any]
+
+
+class BusyOut(_Out):
+    items: list[BusyItem]

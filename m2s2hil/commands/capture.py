@@ -298,6 +298,8 @@ def capture(
     azimuth_step: float = typer.Option(10.0, "--azimuth-step", help="degrees between azimuths"),
     frames_per_pose: int = typer.Option(1, "--frames-per-pose", min=1),
     realtime: bool = typer.Option(False, "--realtime", help="simulated rig in real time, not virtual"),
+    twin_checks: bool = typer.Option(
+        False, "--twin-checks", help="check frames against the digital twin (wrong build, lamp out, ...)"),
     allow_rig_change: bool = typer.Option(
         False, "--allow-rig-change", help="with --resume: continue although the rig file changed"),
 ) -> None:
@@ -346,11 +348,11 @@ def capture(
     try:
         if resume is not None:
             engine = build_run(opened, root, resume=resume, allow_rig_change=allow_rig_change,
-                               qc=capture_qc_hook())
+                               qc=capture_qc_hook(twin=twin_checks))
             n_done = len(engine.store.completed_event_ids())
             console.print(f"resuming {resume}: {n_done} events already stored")
         else:
-            engine = build_run(opened, root, sweep=sweep, qc=capture_qc_hook())
+            engine = build_run(opened, root, sweep=sweep, qc=capture_qc_hook(twin=twin_checks))
             console.print(f"session {engine.session_id} in {engine.store.path}")
         code = _run_engine(engine, virtual=opened.simulated and not realtime)  # open_rig's clock rule
         stuck = engine.alive and engine.state is RunState.ABORTING

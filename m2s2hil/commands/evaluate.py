@@ -50,8 +50,12 @@ def evaluate_cmd(
     ),
     rho: float = typer.Option(0.9, "--rho", help="assumed within-image correlation of the paired t-test"),
     limit: int | None = typer.Option(None, "--limit", min=1, help="evaluate only the first N images"),
+    pair_with: str | None = typer.Option(
+        None, "--pair-with", help="a synthetic TARGET: the HIL session to compare with pose by pose"
+    ),
 ) -> None:
-    """Evaluate segmenters on TARGET: Table-2-shaped CSV/Markdown, charts, per-image scores."""
+    """Evaluate segmenters on TARGET: Table-2-shaped CSV/Markdown, charts, per-image scores.
+    A synthetic session (``m2s2hil synth``) gets the paper's synthetic columns instead."""
     from m2s2hil.analysis.evaluation.evaluate import evaluate_jobs
     from m2s2hil.analysis.evaluation.jobs import collect_jobs
     from m2s2hil.analysis.evaluation.options import EvalOptions
@@ -73,6 +77,13 @@ def evaluate_cmd(
         reprocess=reprocess,
         rho=rho,
     )  # type: ignore[arg-type]
+    from m2s2hil.analysis.evaluation.synthetic import synthetic_target
+    from m2s2hil.commands.synth import evaluate_synthetic_session
+
+    synthetic = synthetic_target(target, root)
+    if synthetic is not None:  # Table 2's synthetic columns (analysis.evaluation.synthetic)
+        evaluate_synthetic_session(synthetic, segmenter, seg_opts, out, pair_with, root, limit, rho)
+        return
     jobs, sources = collect_jobs(target, root)
     if limit is not None:
         jobs = jobs[:limit]

@@ -67,7 +67,8 @@ def repair_cmd(
 def register_cmd(
     session: str = typer.Argument(..., help="session id"),
     root: Path | None = typer.Option(None, "--root", help="data root"),
-    max_frames: int = typer.Option(24, "--max-frames", min=3, max=500, help="frames to fit, spread over the sweep"),
+    max_frames: int = typer.Option(24, "--max-frames", min=3, max=500,
+                                   help="frames to fit, spread over the sweep"),
 ) -> None:
     """Register the twin to a session's frames (offset, yaw, tilt bias, scale) and store it."""
     from m2s2hil.store.catalogue import default_data_root

@@ -11,8 +11,12 @@ HIL sessions of the same build. The band colours and the filaments' RGB colours 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:
+    from m2s2hil.store.session import SessionStore
 
 
 def synth_cmd(
@@ -50,3 +54,30 @@ def synth_cmd(
                      progress=progress)
     typer.echo(f"rendered {res.views} synthetic views of {sat} {build} into {res.path} "
                f"({res.views_per_s:.1f} views/s)")
+
+
+def evaluate_synthetic_session(
+    store: SessionStore, segmenter: str, seg_opts: dict, out: Path, pair_with: str | None, root: Path | None,
+    limit: int | None, rho: float,
+) -> None:
+    """``m2s2hil evaluate SYNTHETIC [--pair-with HIL]``: Table 2's synthetic columns, sim to real."""
+    from m2s2hil.analysis.evaluation.synthetic import evaluate_synthetic
+    from m2s2hil.analysis.segmenters.registry import create_segmenter
+    from m2s2hil.store.catalogue import default_data_root
+    from m2s2hil.store.session import SessionStore
+
+    seg = create_segmenter(segmenter, **seg_opts)
+    hil = None
+    if pair_with is not None:
+        p = Path(pair_with)
+        hil = SessionStore.open_path(p) if p.is_dir() else SessionStore.open(root or default_data_root(),
+                                                                             pair_with)
+    try:
+        typer.echo(f"evaluating synthetic session {store.session_id} with {segmenter}", err=True)
+        files = evaluate_synthetic(store, seg, out, hil=hil, limit=limit, rho=rho)
+    finally:
+        store.close()
+        if hil is not None:
+            hil.close()
+    typer.echo(files["synthetic_table2.md"].read_text())
+    typer.echo(f"wrote {', '.join(sorted(files))} to {out}")

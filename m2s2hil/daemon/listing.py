@@ -46,17 +46,32 @@ class PlannedCounts:
 
     def __init__(self) -> None:
         self._n: dict[str, int] = {}
+        self._frames: dict[str, int] = {}  # of those, the lit frames (the rest are master darks)
 
     def set(self, session_id: str, n: int) -> None:
         self._n[session_id] = n
 
+    def _expand(self, store: SessionStore) -> None:
+        events = store.sweep.expand(store.rig)
+        self._n[store.session_id] = len(events)
+        self._frames[store.session_id] = sum(1 for e in events if e.kind == "frame")
+
     def of(self, store: SessionStore) -> int:
         sid = store.session_id
-        n = self._n.get(sid)
-        if n is None:
-            n = len(store.sweep.expand(store.rig))
-            self._n[sid] = n
-        return n
+        if sid not in self._n:
+            self._expand(store)
+        return self._n[sid]
+
+    def frames_known(self, session_id: str) -> int | None:
+        """The plan's lit frames if its plan was expanded already (e.g. by :meth:`of`)."""
+        return self._frames.get(session_id)
+
+    def frames(self, store: SessionStore) -> int:
+        """The plan's lit frames: ``total`` counts the master darks too (36 frames + 1 dark = 37)."""
+        sid = store.session_id
+        if sid not in self._frames:
+            self._expand(store)
+        return self._frames[sid]
 
 
 def session_rows(root: Path, jobs: Mapping[str, Job], *, state: str | None = None,

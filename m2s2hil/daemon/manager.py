@@ -60,6 +60,7 @@ from .activity import ActivityLog
 from .busy import BusyActions
 from .engine_requests import Action, request, wait_safe_boundary
 from .errors import Conflict, HoldNotSaved
+from .export_jobs import ExportJobs
 from .hold import QueueHold
 from .jobqueue import Job, JobQueue
 from .prometheus import Metrics
@@ -115,6 +116,8 @@ class SessionManager:
         self.activity = ActivityLog()
         #: Long operator actions running now (a snapshot, darks, an export…): each once at a time.
         self.busy = BusyActions()
+        #: Exports run as jobs, followed by polling (``POST /sessions/{id}/export/jobs``).
+        self.exports = ExportJobs(self)
         #: The rig's door for request threads and the emergency stop.
         self.guard = RigGuard(self, estop_grace_s=estop_grace_s, estop_timeout_s=estop_timeout_s)
         #: Status, listings, frames and journals for the clients.
@@ -390,8 +393,15 @@ class SessionManager:
 
     def queue(self) -> dict:
         with self._lock:
-            return {"running": self.running_id(), "held": self._hold.reason, "limit": self.queue_limit,
-                    "items": self._queue.items()}
+            running, held, items = self.running_id(), self._hold.reason, self._queue.items()
+            cur = self._current
+            starting = cur.session_id if cur is not None and running is None else None
+            # between the queue and the engine's start a session is neither queued nor running:
+            # "starting", never "idle" (the console said "rig idle" there)
+            rig = ("running" if running else "starting" if starting else "held" if held
+                   else "queued" if items else "idle")
+            return {"running": running, "held": held, "limit": self.queue_limit, "items": items,
+                    "rig": rig, "starting": starting}
 
     def _queue_gauges(self) -> dict[tuple[tuple[str, str], ...], float]:
         cur = self._current

@@ -30,12 +30,26 @@ class SessionReads:
         if job is None:
             return self.disk_status(session_id)
         if job.engine is not None:
-            return engine_status(job, job.engine)
-        return queued_status(job, sessions.position(job))  # queued or cancelled before running
+            return self._with_frames(engine_status(job, job.engine), job.store)
+        return self._with_frames(queued_status(job, sessions.position(job)), job.store)  # or cancelled
+
+    def _with_frames(self, st: dict, store: SessionStore) -> dict:
+        """``total`` counts captures (lit frames and master darks); say how many of each."""
+        try:
+            frames = self.planned.frames(store)
+        except Exception:  # a plan this rig cannot expand: the counts stay unknown
+            return st
+        st["planned_frames"] = frames
+        st["planned_darks"] = max(0, int(st.get("total") or 0) - frames)
+        return st
 
     def disk_status(self, session_id: str) -> dict:
         """The status from the session's journal, whatever this daemon knows of it."""
-        return disk_status(self._sessions.root, session_id, self._sessions.rig.clock, self.planned)
+        st = disk_status(self._sessions.root, session_id, self._sessions.rig.clock, self.planned)
+        frames = self.planned.frames_known(session_id)  # expanded by disk_status with the total
+        if frames is not None and "total" in st:
+            st["planned_frames"], st["planned_darks"] = frames, max(0, int(st["total"]) - frames)
+        return st
 
     def sessions(self, *, state: str | None = None, satellite: str | None = None, build: str | None = None,
                  offset: int = 0, limit: int = 50) -> tuple[list[dict], int]:

@@ -66,6 +66,7 @@ class FrameToStore:
     preview: np.ndarray | None
     meta: dict
     truth: Any = None
+    extra: dict[str, np.ndarray] | None = None  # more arrays stored with the frame (the QC hook's)
 
 
 class FrameStages:
@@ -164,17 +165,19 @@ class FrameStages:
                 meta["qc_error"] = f"{type(exc).__name__}: {exc}"
         white = calibrated_white(cap.processor)
         preview = rgb_preview(cube, self.rig.config.camera.model.bands_nm, white=white)
-        return FrameToStore(cap.data, cube, preview, meta, cap.truth)
+        files = getattr(self.qc, "frame_files", None)  # e.g. the twin's projected labels
+        extra = files(ev) if callable(files) and "qc" in meta and meta["qc"] is not None else None
+        return FrameToStore(cap.data, cube, preview, meta, cap.truth, extra or None)
 
     def write(self, ev: CaptureEvent, p: FrameToStore) -> Any:
         """Storage stage (pipeline thread): the frame's files and record."""
         if p.truth is None:
-            return self.store.write_frame(ev, p.raw, p.cube, p.preview, p.meta)
+            return self.store.write_frame(ev, p.raw, p.cube, p.preview, p.meta, extra=p.extra)
         # Simulation: the label map is stored as the frame's "truth_labels" file (checksummed
         # and committed with it); the rest of the truth that is small goes into the metadata.
         meta = {**p.meta, "truth": {k: v for k, v in p.truth.items() if k != "labels"}}
         return self.store.write_frame(ev, p.raw, p.cube, p.preview, meta,
-                                      extra={"truth_labels": p.truth["labels"]})
+                                      extra={**(p.extra or {}), "truth_labels": p.truth["labels"]})
 
 
 def qc_number(v: Any) -> float | None:

@@ -112,7 +112,8 @@ class LiveRenderer:
         stats = {
             "seq": seq,
             "block_id": int(frame.block_id),
-            "exposure_s": float(frame.exposure_s),
+            # to the ns: the camera's µs register makes 0.2 s read back as 0.19999999999999998
+            "exposure_s": round(float(frame.exposure_s), 9),
             "gain": float(frame.gain),
             "temperature_c": float(frame.temperature_c),
             "width": int(img.shape[1]),

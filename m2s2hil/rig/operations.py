@@ -47,7 +47,7 @@ class RigOps:
         self._lit: frozenset[int] | None = None  # None: unknown (start, after a fault)
         self._pose: dict[str, float | None] = dict.fromkeys(AXIS_ROLES)
         self._moved_at = -1e18  # clock time the last move ended
-        self._heading: dict[str, tuple[float, float]] = {}  # start_move's (start, target) per axis
+        self._heading: dict[str, tuple[float, float, float]] = {}  # start_move's (start, target, when)
         self.lens_capped = False
 
     # -- state -----------------------------------------------------------------------
@@ -108,13 +108,13 @@ class RigOps:
         heading = self._heading.pop(role, None)
         finish = getattr(ax, "finish_move", None)
         if heading is not None and abs(heading[1] - target) <= tol / 2 and finish is not None:
-            actual = float(finish(heading[0], target))  # started by start_move: wait, verify
+            actual = float(finish(heading[0], target, since=heading[2]))  # from start_move: wait, verify
         else:
             if heading is not None and finish is not None:
                 # A guess that was wrong (e.g. a frame retried): let that move end first, so
                 # this one is watched from where the axis stands.
                 with contextlib.suppress(MoveNotVerified):
-                    finish(*heading)
+                    finish(heading[0], heading[1], since=heading[2])
             actual = float(ax.move_to(target, wait=True))
         if abs(actual - target) > tol:
             raise MoveNotVerified(
@@ -137,8 +137,9 @@ class RigOps:
         self._pose[role] = None
         ax = self.axis(role)
         start = float(ax.position())
+        since = self.clock.monotonic()
         ax.move_to(target, wait=False)
-        self._heading[role] = (start, target)
+        self._heading[role] = (start, target, since)
         return True
 
     def move_pose(self, azimuth_deg: float, tilt_deg: float) -> list[AxisRole]:

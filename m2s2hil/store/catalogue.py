@@ -72,6 +72,8 @@ def summary(store: SessionStore) -> dict[str, Any]:
     done = store.completed_event_ids()
     frames = store.frames()
     darks = store.darks()
+    if store.kind == "synthetic":  # its plan is what it rendered (m2s2hil.twin.synth), no darks
+        planned_frames, planned_darks = {fr.event_id for fr in frames}, set()
     total_bytes = sum(f.bytes for fr in frames for f in fr.files.values())
     total_bytes += sum(f.bytes for d in darks for f in d.files.values())
     return {

@@ -28,7 +28,9 @@ exact on the simulated rig, an assumption a real rig would calibrate (white refe
 Cost: about 15–40 ms per frame at 96 px (docs/benchmarks.md); :class:`SweepChecks` (the
 capture-time QC's companion, ``analysis.qc``) runs them on the first ``first_frames``
 frames after every change of lighting, tilt or mount and then on every ``every``-th
-frame, so the processing thread keeps up with 65 frames/s.
+frame, so the processing thread keeps up with 65 frames/s; a flag is raised once
+``confirm`` (2) checked frames of the same lighting and elevation had it (a single frame's
+flag is kept as ``frame_flags``), which removes most false alarms of one odd view.
 """
 
 from __future__ import annotations
@@ -42,9 +44,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-from m2s2hil.simulators.scene import MountedScene
 from scipy.optimize import nnls
 
+from m2s2hil.simulators.scene import MountedScene
 from m2s2hil.twin.projection import NOMINAL, Placement, TwinCamera, coverage_of, observed_mask
 
 CHECKS_VERSION = 1
@@ -67,6 +69,7 @@ class CheckConfig:
     dim_factor: float = 0.75
     first_frames: int = 3
     every: int = 8
+    confirm: int = 2  # a flag is raised once this many checked frames of a lighting had it
     diameter_mm: float | None = None  # None: the twin's default (projection.DIAMETER_MM)
 
     def __post_init__(self) -> None:
@@ -74,8 +77,10 @@ class CheckConfig:
             "size": 24 <= self.size <= 1024, "shift_mm": self.shift_mm > 0, "yaw_deg": self.yaw_deg > 0,
             "tilt_deg": self.tilt_deg > 0, "min_iou": 0 <= self.min_iou <= 1,
             "spectrum_deg": 0 < self.spectrum_deg < 90,
-            "brightness_ratio": self.brightness_ratio > 1, "max_wrong_fraction": 0 < self.max_wrong_fraction < 1,
-            "out_factor": 0 <= self.out_factor <= self.dim_factor <= 1, "first_frames": self.first_frames >= 0,
+            "brightness_ratio": self.brightness_ratio > 1,
+            "max_wrong_fraction": 0 < self.max_wrong_fraction < 1,
+            "out_factor": 0 <= self.out_factor <= self.dim_factor <= 1,
+            "first_frames": self.first_frames >= 0, "confirm": self.confirm >= 1,
             "every": self.every >= 1,
         }
         for name, ok in checks.items():
@@ -165,7 +170,8 @@ class TwinChecks:
             step = np.linalg.solve(jtj, -jac.T @ r)
             step = np.clip(step, [-8, -8, -6, -6, -3], [8, 8, 6, 6, 3])
             u, v, dyaw, dtilt = u + step[0], v + step[1], dyaw + step[2], dtilt + step[3]
-        p = Placement(prior.dx_mm, prior.dy_mm, prior.yaw_deg + dyaw, prior.tilt_bias_deg + dtilt, prior.scale)
+        p = Placement(prior.dx_mm, prior.dy_mm, prior.yaw_deg + dyaw, prior.tilt_bias_deg + dtilt,
+                      prior.scale)
         final = _shift(self.twin.coverage(m, az, tilt, p), u, v) >= 0.5
         seen = obs >= 0.5
         union = np.logical_or(final, seen).sum()
@@ -191,7 +197,8 @@ class TwinChecks:
             m = self.twin.mounted(satellite, build)
             out: dict[str, Any] = {"checks_version": CHECKS_VERSION}
             flags: list[str] = []
-            al = self.align(m, azimuth_deg, tilt_deg, obs) if (obs >= 0.5).any() else Alignment(0, 0, 0, 0, 0.0)
+            seen = (obs >= 0.5).any()
+            al = self.align(m, azimuth_deg, tilt_deg, obs) if seen else Alignment(0, 0, 0, 0, 0.0)
             if al.iou < cfg.min_iou:
                 # Nothing like the mockup in view: the light first (a dead lamp leaves the
                 # frame dark), else another satellite (or none) stands there.
@@ -204,7 +211,8 @@ class TwinChecks:
                 return out
             mm = 1.0 / self.twin.px_per_mm()
             shift_mm = math.hypot(al.u_px, al.v_px) * mm
-            out.update(shift_mm=[round(al.u_px * mm, 3), round(al.v_px * mm, 3)], yaw_deg=round(al.yaw_deg, 3),
+            out.update(shift_mm=[round(al.u_px * mm, 3), round(al.v_px * mm, 3)],
+                       yaw_deg=round(al.yaw_deg, 3),
                        tilt_deg=round(al.tilt_deg, 3), iou=round(al.iou, 4))
             if shift_mm > cfg.shift_mm:
                 flags.append("off_axis")
@@ -232,7 +240,8 @@ class TwinChecks:
         return cube, lab
 
     def _light_ratio(self, m: MountedScene, az: float, tilt: float, al: Alignment, small: np.ndarray,
-                     clipped: np.ndarray, lamps_on: Sequence[int], exposure_s: float, gain: float) -> float | None:
+                     clipped: np.ndarray, lamps_on: Sequence[int], exposure_s: float,
+                     gain: float) -> float | None:
         lit = [ch for ch in lamps_on if ch in self.lamps]
         if not lit:
             return None
@@ -277,8 +286,8 @@ class TwinChecks:
                 if med > cfg.spectrum_deg or abs(level) > math.log(cfg.brightness_ratio):
                     wrong_px += int(sel.sum())
                     # Far off (twice the angle, the ratio squared) and not a sliver: alone enough.
-                    strong |= bool((med > 2 * cfg.spectrum_deg or abs(level) > 2 * math.log(cfg.brightness_ratio))
-                                   and sel.sum() >= 0.03 * good.sum())
+                    far = med > 2 * cfg.spectrum_deg or abs(level) > 2 * math.log(cfg.brightness_ratio)
+                    strong |= bool(far and sel.sum() >= 0.03 * good.sum())
             wrong = wrong_px / max(1, int(good.sum()))
             n_wrong = sum(a > cfg.spectrum_deg or abs(math.log(b)) > math.log(cfg.brightness_ratio)
                           for a, b in regions.values())
@@ -337,12 +346,13 @@ class SweepChecks:
     registration: Any = None  # registration.IncrementalRegistration, if registration runs too
     _key: Any = None
     _count: int = 0
+    _seen: dict[str, int] = field(default_factory=dict)  # flag -> checked frames of this key with it
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def due(self, key: Any) -> bool:
         with self._lock:
             if key != self._key:
-                self._key, self._count = key, 0
+                self._key, self._count, self._seen = key, 0, {}
             self._count += 1
             n, cfg = self._count, self.checks.config
             return n <= cfg.first_frames or (n - cfg.first_frames) % cfg.every == 0
@@ -354,20 +364,40 @@ class SweepChecks:
         az, tilt = pose.get("turntable_deg"), pose.get("tilt_deg")
         if not isinstance(az, (int, float)) or not isinstance(tilt, (int, float)):
             return None
+        if not self.due(key):
+            return None
         reg = None
-        if self.registration is not None:
+        if self.registration is not None:  # the checked frames feed the sweep's registration too
             from m2s2hil.twin.registration import Observation
 
             r = self.registration.add(Observation.from_cube(self.satellite, self.build, az, tilt, cube, 96))
             reg = r.placement if r is not None else None
-        if not self.due(key):
-            return None
         res = self.checks.check(cube, self.satellite, self.build, float(az), float(tilt),
                                 list(meta.get("lamps_on") or []), float(meta.get("exposure_s") or 0.0),
                                 float(meta.get("gain") or 1.0), registered=reg, saturated=saturated)
         if self.registration is not None and self.registration.current is not None:
             res["registration"] = self.registration.current.as_dict()
+        # One frame's flag may be noise (a shadow, a symmetric pose); what the next checked
+        # frame of the same lighting confirms is not: flags are raised from the ``confirm``-th.
+        with self._lock:
+            for f in res["flags"]:
+                self._seen[f] = self._seen.get(f, 0) + 1
+            confirmed = [f for f in res["flags"] if self._seen[f] >= self.checks.config.confirm]
+        res["frame_flags"], res["flags"] = res["flags"], confirmed
         return res
+
+    def labels(self, meta: Mapping[str, Any], shape: tuple[int, ...]) -> Any:
+        """The frame's projected labels (``twin.labels.ProjectedLabels``) at ``shape`` (the
+        cube's), once the sweep's registration has a placement; else None."""
+        from m2s2hil.twin.labels import projected_labels
+
+        reg = self.registration.current if self.registration is not None else None
+        pose = meta.get("pose") or {}
+        az, tilt = pose.get("turntable_deg"), pose.get("tilt_deg")
+        if reg is None or len(shape) != 2 or not all(isinstance(v, (int, float)) for v in (az, tilt)):
+            return None
+        return projected_labels(self.checks.twin, self.satellite, self.build, float(az), float(tilt), reg,
+                                (int(shape[0]), int(shape[1])))
 
 
 def sweep_checks(sweep: Any, rig: Any, config: CheckConfig | None = None, *,
@@ -382,5 +412,6 @@ def sweep_checks(sweep: Any, rig: Any, config: CheckConfig | None = None, *,
     if register:
         from m2s2hil.twin.registration import IncrementalRegistration, Registrar
 
-        incremental = IncrementalRegistration(Registrar(rig.camera.model))
+        # One coarse level, few iterations: it runs in the processing thread, warm-started.
+        incremental = IncrementalRegistration(Registrar(rig.camera.model, levels=((48, 1.5),), max_nfev=6))
     return SweepChecks(checks, sweep.satellite, sweep.build, incremental)

@@ -26,10 +26,10 @@ from typing import Any
 
 import cv2
 import numpy as np
-from m2s2hil.simulators.raster import rasterize
-from m2s2hil.simulators.scene import MountedScene, Scene, SceneParams, Shaded
 
 from m2s2hil.catalog import load_catalog
+from m2s2hil.simulators.raster import rasterize
+from m2s2hil.simulators.scene import MountedScene, Scene, SceneParams, Shaded
 
 #: The bench's mockup size (bounding-sphere diameter, mm): the simulated rig's default too
 #: (``[simulation.mount] diameter_mm``). An assumption: the printed mockups are about 16 cm.
@@ -58,7 +58,8 @@ class Placement:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Placement:
-        return cls(**{k: float(d[k]) for k in ("dx_mm", "dy_mm", "yaw_deg", "tilt_bias_deg", "scale") if k in d})
+        keys = ("dx_mm", "dy_mm", "yaw_deg", "tilt_bias_deg", "scale")
+        return cls(**{k: float(d[k]) for k in keys if k in d})
 
 
 NOMINAL = Placement()

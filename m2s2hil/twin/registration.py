@@ -182,12 +182,14 @@ class Registrar:
             mounts = [twin.mounted(o.satellite, o.build) for o in obs]
             idx = np.flatnonzero(free)
 
-            def fun(z: np.ndarray, lv: _Level = lv, mounts: list = mounts, idx: np.ndarray = idx) -> np.ndarray:
+            def fun(z: np.ndarray, lv: _Level = lv, mounts: list = mounts,
+                    idx: np.ndarray = idx) -> np.ndarray:
                 full = x.copy()
                 full[idx] = z
                 return self._residuals(full, lv, obs, mounts)
 
-            def jac(z: np.ndarray, lv: _Level = lv, mounts: list = mounts, idx: np.ndarray = idx) -> np.ndarray:
+            def jac(z: np.ndarray, lv: _Level = lv, mounts: list = mounts,
+                    idx: np.ndarray = idx) -> np.ndarray:
                 full = x.copy()
                 full[idx] = z
                 return self._jacobian(full, lv, obs, mounts, free)[:, idx]
@@ -278,7 +280,8 @@ def register_session(store: Any, registrar: Registrar | None = None, *, max_fram
                      record: bool = True) -> Registration:
     """Register a stored session's mockup from its frames; with ``record`` (the store open for
     writing), the result goes into the session's event log as ``twin_registration``."""
-    reg = (registrar or Registrar(store.rig.camera.model)).register(session_observations(store, max_frames=max_frames))
+    fitter = registrar or Registrar(store.rig.camera.model)
+    reg = fitter.register(session_observations(store, max_frames=max_frames))
     if record:
         store.record_event(EVENT_KIND, reg.as_dict())
     return reg

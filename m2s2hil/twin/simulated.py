@@ -12,13 +12,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from m2s2hil.simulators.clock import VirtualClock
-from m2s2hil.simulators.frames import FrameTruth
 
 from m2s2hil.config import RigConfig, default_rig
 from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark
 from m2s2hil.sim_config import build_frame_source, build_world
+from m2s2hil.simulators.clock import VirtualClock
+from m2s2hil.simulators.frames import FrameTruth
 
 
 def rig_with(size: int = 256, **simulation: Any) -> RigConfig:
@@ -95,7 +95,8 @@ class SimBench:
         cube = FrameProcessor("superpixel", self.model, dark=self._dark(exposure_s)).process(raw).cube
         lamps = {lamp.channel: lamp.channel in self.world.lamps_on() for lamp in self.rig.lamps.values()}
         meta = {
-            "satellite": satellite, "build": build, "lighting": lighting, "exposure_s": exposure_s, "gain": 1.0,
+            "satellite": satellite, "build": build, "lighting": lighting, "exposure_s": exposure_s,
+            "gain": 1.0,
             "pose": {"turntable_deg": float(azimuth_deg), "tilt_deg": float(tilt_deg)},
             "lamps_on": sorted(ch for ch, on in lamps.items() if on), "bit_depth": int(self.model.bit_depth),
         }

@@ -159,6 +159,8 @@ def collect_jobs(target: str | Path, root: str | Path | None = None) -> tuple[li
             jobs, desc = [], []
             for s in sorted(sessions, key=lambda s: s.session_id):
                 with SessionStore.open(p, s.session_id) as store:
+                    if store.kind == "synthetic":  # no raws: evaluation.synthetic scores it
+                        continue
                     jobs += session_jobs(store)
                 desc.append(f"session {s.session_id}")
             return jobs, desc

@@ -29,12 +29,12 @@ import io
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from m2s2hil.analysis.bands import PAPER_BANDS
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.evaluation.loading import labels_to_cube
 from m2s2hil.analysis.metrics.scores import score_clusters
 from m2s2hil.analysis.metrics.significance import DEFAULT_RHO, paired_t_test
 from m2s2hil.analysis.segmenters.compositing import majority_vote
@@ -78,12 +78,12 @@ def fused_bands(segmenter: Segmenter, bands: np.ndarray, picks: Sequence[int] = 
     return majority_vote([run_segmenter(segmenter, _cube(bands[b - 1])) for b in picks])
 
 
-def score_views(store: SessionStore, segmenter: Segmenter,
-                progress: Callable[[int, int], None] | None = None) -> list[ViewScores]:
-    """Every view of a synthetic session, RGB and Multi scored against its mask."""
+def score_views(store: SessionStore, segmenter: Segmenter, progress: Callable[[int, int], None] | None = None,
+                limit: int | None = None) -> list[ViewScores]:
+    """Every view (the first ``limit``) of a synthetic session, RGB and Multi scored against its mask."""
     if store.kind != "synthetic":
         raise AnalysisInputError("session", f"{store.session_id} is a {store.kind} session, not synthetic")
-    frames = store.frames()
+    frames = store.frames()[:limit]
     out = []
     for i, fr in enumerate(frames):
         rgb, bands, mask = band_images(store, fr.event_id)
@@ -205,6 +205,8 @@ def sim_to_real(synthetic: SessionStore, hil: SessionStore, segmenter: Segmenter
         truth = decode_image(hil.read_file(fr.files[role])).astype(np.int64)
         cube = hil.read_cube(fr.event_id)
         if truth.shape != cube.shape[1:]:  # the truth is the sensor's grid, the cube may be smaller
+            from m2s2hil.analysis.evaluation.loading import labels_to_cube  # processing: only here
+
             truth = labels_to_cube(truth, cube.shape[1:])
         sv = views[key]
         _, bands, mask = band_images(synthetic, sv.event_id)
@@ -214,3 +216,53 @@ def sim_to_real(synthetic: SessionStore, hil: SessionStore, segmenter: Segmenter
             hil=_scores(truth, run_segmenter(segmenter, cube)),
         ))
     return pairs, skipped
+
+
+def synthetic_target(target: str, root: str | Path | None) -> SessionStore | None:
+    """The synthetic session ``target`` names (a folder, or an id under ``root``), open for
+    reading; None when it names anything else (a HIL session, a data root, an export)."""
+    from m2s2hil.store.catalogue import default_data_root
+    from m2s2hil.store.layout import JOURNAL
+
+    p = Path(target)
+    folder = p if (p / JOURNAL).is_file() else Path(root or default_data_root()) / target
+    if not (folder / JOURNAL).is_file():
+        return None
+    store = SessionStore.open_path(folder)
+    if store.kind == "synthetic":
+        return store
+    store.close()
+    return None
+
+
+def evaluate_synthetic(store: SessionStore, segmenter: Segmenter, out: str | Path, *,
+                       hil: SessionStore | None = None, limit: int | None = None, rho: float = DEFAULT_RHO,
+                       progress: Callable[[int, int], None] | None = None) -> dict[str, Path]:
+    """Score ``store``'s views (the first ``limit``), write ``synthetic_table2.{csv,md}`` and, with
+    ``hil``, ``sim_to_real.csv`` (one row per pose) under ``out``; returns the files."""
+    from m2s2hil.atomic import write_text_atomic
+    from m2s2hil.catalog import load_catalog
+
+    views = score_views(store, segmenter, progress, limit)
+    cat = load_catalog()
+    counts = {(store.sweep.satellite, store.sweep.build):
+              len(cat.build(store.sweep.satellite, store.sweep.build).materials) + 1}
+    rows = synthetic_rows(views, counts, rho)
+    out = Path(out)
+    files = {name: out / name for name in ("synthetic_table2.csv", "synthetic_table2.md")}
+    write_text_atomic(files["synthetic_table2.csv"], rows_csv(rows))
+    write_text_atomic(files["synthetic_table2.md"], rows_markdown(rows))
+    if hil is not None:
+        pairs, skipped = sim_to_real(store, hil, segmenter)
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["elevation", "azimuth_deg", "synthetic_event", "hil_event", "hil_truth",
+                    *[f"{m}_{d}" for m in METRICS for d in ("synthetic", "hil", "gap")]])
+        for pr in pairs:
+            w.writerow([pr.elevation, pr.azimuth_deg, pr.synthetic_event, pr.hil_event, pr.hil_truth,
+                        *[f"{x:.4f}" for m in METRICS for x in (pr.synthetic[m], pr.hil[m], pr.gap[m])]])
+        if skipped:
+            w.writerow([f"# {skipped} HIL frame(s) of these poses had no truth and were skipped"])
+        files["sim_to_real.csv"] = out / "sim_to_real.csv"
+        write_text_atomic(files["sim_to_real.csv"], buf.getvalue())
+    return files

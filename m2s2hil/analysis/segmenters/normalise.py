@@ -8,7 +8,8 @@ carry a shape (issue 23, docs/evaluation.md "Robustness"):
   clipped in some bands has a flattened spectrum (over-exposure split one material into several
   "flat-topped" clusters). Without the full scale, a clipped band shows as a *plateau*: many
   pixels within ``PLATEAU_REL_TOL`` of the band's maximum (dark subtraction leaves the clipped
-  value at full scale − dark, the same to a few DN). A processor's own mask (``saturated``,
+  value at full scale − dark, the same to a few DN) that holds more pixels than the three times
+  wider bin below it (a natural tail falls towards its maximum). A processor's own mask (``saturated``,
   ``ProcessedFrame.saturated_mask``) can be given instead or as well.
 - **near-black** pixels: band energy under ``snr_min`` × the noise floor. Their unit spectrum is
   mostly noise (its angular noise is about 1/SNR rad, 6° at SNR 10), and at low exposure they
@@ -35,6 +36,16 @@ PLATEAU_MIN_PIXELS = 20
 PLATEAU_MIN_FRACTION = 0.002  # of the foreground: a natural tail puts far fewer pixels that close
 MAX_CLIPPED_FRACTION = 0.05  # a band clipped on more of the foreground is left out of the features
 MIN_BANDS = 3
+
+
+def neighbour_angle_deg(unit: np.ndarray, mask: np.ndarray) -> float:
+    """Median spectral angle (degrees) between horizontal neighbours that are both in ``mask``:
+    the cube's own angular noise level (material boundaries only reach the tail); NaN if none."""
+    both = mask[:, 1:] & mask[:, :-1]
+    if not both.any():
+        return float("nan")
+    cos = np.einsum("bn,bn->n", unit[:, :, 1:][:, both], unit[:, :, :-1][:, both])
+    return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
 
 
 @dataclass(frozen=True)
@@ -82,11 +93,19 @@ def clipped_bands(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
     n_fg = int(fg.sum())
     need = max(PLATEAU_MIN_PIXELS, int(PLATEAU_MIN_FRACTION * n_fg))
     for b in range(cube.shape[0]):
-        top = float(cube[b].max())
+        band = cube[b]
+        top = float(band.max())
         if top <= 0:
             continue
-        near = cube[b] >= top * (1.0 - PLATEAU_REL_TOL)
-        if int(near.sum()) >= need:
+        # the width of the top bin: the relative tolerance, but at least one quantisation step
+        # (at low exposure a natural tail of integer-like values has many pixels *at* its maximum)
+        levels = np.unique(band[band >= 0.9 * top])
+        step = float(np.min(np.diff(levels))) if levels.size > 1 else 0.0
+        delta = max(PLATEAU_REL_TOL * top, step)
+        near = band >= top - delta
+        n_near = int(near.sum())
+        shoulder = int(np.count_nonzero((band >= top - 4 * delta) & ~near))  # a bin three times wider
+        if n_near >= need and n_near > shoulder:  # a spike at the top, not a falling tail
             out[b] = near
     return out
 

@@ -64,7 +64,12 @@ from threadpoolctl import threadpool_limits
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.segmenters.normalise import Reliability, normalise_cube, reliability
+from m2s2hil.analysis.segmenters.normalise import (
+    Reliability,
+    neighbour_angle_deg,
+    normalise_cube,
+    reliability,
+)
 from m2s2hil.catalog import load_catalog
 
 CovarianceType = Literal["full", "tied", "diag", "spherical"]
@@ -116,6 +121,9 @@ def foreground_mask(cube: np.ndarray, rule: ForegroundRule = "otsu") -> tuple[np
 
 
 MIN_FIT_PIXELS = 50
+# Homogeneity angle ≥ this × the median neighbour angle: at 60 % peak that median is ≈ 1–2° and the
+# fixed 3° rules; at 4 % peak it is ≈ 6° and a fixed 3° left no pixel (then the fit fell back to all).
+NOISE_ANGLE_FACTOR = 1.5
 
 
 def features_of(cube: np.ndarray, features: Features = "unit") -> np.ndarray:
@@ -409,7 +417,12 @@ class SpectralSegmenter:
             if self.noise_scaled:  # angular noise grows as 1/√signal (shot noise): dark pixels get more room
                 ref = float(np.median(energy[fg]))
                 scale = np.sqrt(np.maximum(ref / np.maximum(energy, 1e-12), 1.0))
-            fit = homogeneous_pixels(unit, fg, self.homogeneity_deg, scale)
+            angle = self.homogeneity_deg
+            if rel is not None:  # the test's angle follows the cube's own noise (low exposure)
+                noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
+                if np.isfinite(noise_deg):
+                    angle = min(max(angle, NOISE_ANGLE_FACTOR * noise_deg), 45.0)
+            fit = homogeneous_pixels(unit, fg, angle, scale)
         if rel is not None:
             fit = fit & ~rel.unreliable
             if int(fit.sum()) < MIN_FIT_PIXELS:

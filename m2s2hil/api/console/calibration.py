@@ -14,6 +14,7 @@ from typing import Any
 
 from fastapi import APIRouter
 
+from m2s2hil.config import RigConfig
 from m2s2hil.daemon.admission import EXPANDING, check_size
 from m2s2hil.errors import UsageError
 from m2s2hil.rig.calibrate import (
@@ -36,7 +37,8 @@ def get_calibration(console: ConsoleDep) -> dict[str, Any]:
     path = console.calibration_path
     named = console.manager.rig.config.camera.calibration_file is not None
     out: dict[str, Any] = {"file": str(path), "exists": path.is_file(), "white_reference": None,
-                           "named_in_rig_file": named}
+                           "named_in_rig_file": named,
+                           "white_default_lighting": white_default_lighting(console.manager.rig.config)}
     if path.is_file():
         try:
             doc = json.loads(path.read_text())
@@ -72,10 +74,21 @@ def take_darks(mg: Manager, console: ConsoleDep, body: cm.DarksIn) -> dict[str, 
     return {"library": str(console.darks.root), "darks": entries}
 
 
+def white_default_lighting(cfg: RigConfig) -> str | None:
+    """The preset a white reference should default to: the one with the most lamps and no
+    spotlight (a directional lamp lights a panel unevenly, and the uniformity check refuses it)."""
+    even = [(len(lamps), name) for name, lamps in cfg.lighting.items()
+            if lamps and all(cfg.lamps[n].kind != "spotlight" for n in lamps if n in cfg.lamps)]
+    return max(even)[1] if even else None
+
+
 @router.post("/calibration/white", status_code=201, responses={**CONFLICT, **CROSS_SITE})
 def take_white(mg: Manager, console: ConsoleDep, body: cm.WhiteIn) -> dict[str, Any]:
     """Average the white panel, check it (no saturation, enough signal, an even field), and write
-    it to the calibration file; a failed check (422) writes nothing."""
+    it to the calibration file; a failed check (422) writes nothing. Without ``lighting`` the
+    lamps are switched to ``white_default_lighting`` (``GET /calibration``: the preset with the
+    most lamps and no spotlight), not left as they happen to be."""
+    lighting = body.lighting or white_default_lighting(mg.rig.config)
     if not mg.rig.simulated and not body.panel_in_place:
         raise UsageError("body.panel_in_place: put the white panel in view and confirm it")
     with (mg.busy.claim("white", "a white reference capture"),
@@ -83,7 +96,7 @@ def take_white(mg: Manager, console: ConsoleDep, body: cm.WhiteIn) -> dict[str, 
         console.camera.release(rig)
         _, prov = capture_white_reference(
             rig, console.calibration_path, exposure_s=body.exposure_s, gain=body.gain,
-            n_frames=body.n_frames, reflectance=body.reflectance, lighting=body.lighting,
+            n_frames=body.n_frames, reflectance=body.reflectance, lighting=lighting,
             library=console.darks)
     hint = None if console.manager.rig.config.camera.calibration_file is not None else (
         f"the rig file names no calibration file: add calibration_file = \"{console.calibration_path}\" "

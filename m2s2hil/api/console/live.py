@@ -115,7 +115,8 @@ def _frame_part(frame: LiveFrame) -> bytes:
 def _live_out(console: ConsoleDep) -> dict:
     snap = console.live.snapshot()
     s = console.live.settings
-    return {"settings": {"exposure_s": s.exposure_s, "gain": s.gain, "view": s.view, "axis_x": s.axis_x},
+    return {"settings": {"exposure_s": round(s.exposure_s, 9), "gain": s.gain, "view": s.view,
+                         "axis_x": s.axis_x},
             "viewers": console.live.viewers, "frames_produced": console.live.frames_produced,
             "error": console.live.error, "stats": snap.stats if snap is not None else None,
             "state": console.live.state, "stopped_reason": console.live.stopped_reason,

@@ -61,6 +61,7 @@ def get_axes(mg: Manager) -> dict:
     mc = ManualControl(mg.rig)
     axes: list[dict] = []
     lamps_on: list[str] | None = None
+    targets = mg.guard.targets
     if owner is None:
         try:
             with mg.guard.manual_access("reading the axes"):  # the device lock (it yields mg.rig, mc's rig)
@@ -76,11 +77,16 @@ def get_axes(mg: Manager) -> dict:
         try:
             st = mg.reads.status(owner)
             axes[0]["position_deg"], axes[1]["position_deg"] = st.get("azimuth_deg"), st.get("tilt_deg")
+            # the lamps the session switched on (its engine's channels), by name
+            on = set(st.get("lamps_on") or ())
+            lamps_on = sorted(n for n, lc in cfg.lamps.items() if lc.channel in on)
         except UsageError:
             pass
+    for a in axes:
+        a["target_deg"] = targets.pending(a["role"]) if owner is None else None
     return {"owner": owner, "axes": axes, "lamps_on": lamps_on,
             "lamps": {n: lc.kind for n, lc in cfg.lamps.items()},
-            "presets": {k: list(v) for k, v in cfg.lighting.items()}}
+            "presets": {k: list(v) for k, v in cfg.lighting.items()}, "busy": mg.busy.items()}
 
 
 @contextlib.contextmanager

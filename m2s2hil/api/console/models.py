@@ -49,14 +49,19 @@ class AxisOut(BaseModel):
     homing: str
     can_home: bool
     error: str | None = None
+    target_deg: float | None = Field(None, description="The last manual move's target still in force: the "
+                                                       "next jog starts there (null: from the read-back).")
 
 
 class AxesOut(BaseModel):
     owner: str | None = Field(description="The session that owns the rig (manual control refused), or null.")
     axes: list[AxisOut]
-    lamps_on: list[str] | None
+    lamps_on: list[str] | None = Field(description="Lamps on: read back, or while a session owns the rig "
+                                                   "as its engine last set them.")
     lamps: dict[str, str] = Field(description="Every lamp and its kind.")
     presets: dict[str, list[str]]
+    busy: list[dict[str, Any]] = Field(default_factory=list,
+                                       description="Long actions running now (GET /busy).")
 
 
 class MoveOut(BaseModel):
