@@ -231,9 +231,11 @@ def _snap(rig, fs) -> tuple[np.ndarray, object]:
     return np.array(frame.data, copy=True), fs.truth()
 
 
-def measure_sharpness(size: int, speeds: list[float], marks: list[float], exposure: float) -> dict:
+def measure_sharpness(size: int, speeds: list[float], marks: list[float], exposure: float,
+                      gain: float = 1.0, lighting: str = "weak") -> dict:
     """Frames taken at full resolution while the turntable turns at each speed, each against a
-    stop-and-go frame at its mid-exposure pose (see the module docstring)."""
+    stop-and-go frame at its mid-exposure pose with the same exposure and gain (see the module
+    docstring)."""
     cfg = rig_config(size)
     ax = cfg.axes["turntable"]
     layout = cfg.camera.model.layout
@@ -243,9 +245,9 @@ def measure_sharpness(size: int, speeds: list[float], marks: list[float], exposu
     try:
         rig.mount("voyager", "B3")
         rig.tilt.move_to(cfg.elevations["E1"])
-        rig.lights.set(cfg.lamp_channels("weak"))
+        rig.lights.set(cfg.lamp_channels(lighting))
         rig.clock.sleep(3.0)  # LED warm-up: the same light for every frame below
-        rig.camera.configure(exposure_s=exposure, gain=1.0)
+        rig.camera.configure(exposure_s=exposure, gain=gain)
         moving: dict[float, list[tuple[np.ndarray, object]]] = {}
         for v in speeds:
             moving[v] = []

@@ -1,6 +1,9 @@
 """The M2S2 catalog as data: satellites, builds, materials, lighting, elevations.
 
-Everything comes from ``data/catalog.toml``; nothing here branches on a name.
+Everything comes from ``data/catalog.toml``; nothing here branches on a name. Builds follow
+Table 1 of the paper, including Hubble B3 = the four filaments of B2 (5 classes), not Table 2's
+11 classes; the reasons are in catalog.toml and docs/analysis.md ("Hubble B2 and B3"). Where
+the filaments sit on a mockup is the simulator's (``simulators/mockups.py``).
 """
 
 from __future__ import annotations

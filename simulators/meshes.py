@@ -183,7 +183,7 @@ def _read_model(xml: bytes, path: str, objects: dict[tuple[str, str], _Object]) 
                 tri_mat = mats
             elif tag == "component":
                 comps.append((sub.get("objectid", ""), _attr(sub, "path"), _transform(sub.get("transform"))))
-        objects[(path, oid)] = _Object(oid, el.get("name", f"object {oid}"), verts, faces, tri_mat, comps)
+        objects[(path, oid)] = _Object(oid, el.get("name") or f"object {oid}", verts, faces, tri_mat, comps)
     items = []
     for el in root.iter():
         if isinstance(el.tag, str) and _ns_local(el.tag) == "item":
@@ -191,12 +191,16 @@ def _read_model(xml: bytes, path: str, objects: dict[tuple[str, str], _Object]) 
     return items, UNIT_MM[unit]
 
 
-def _slicer_extruders(z: zipfile.ZipFile) -> tuple[dict[str, str], dict[tuple[str, str], str], list[str]]:
-    """Bambu Studio / OrcaSlicer: extruder per object and per (object, part), filament names."""
+def _slicer_extruders(
+    z: zipfile.ZipFile,
+) -> tuple[dict[str, str], dict[tuple[str, str], str], dict[tuple[str, str], str], list[str]]:
+    """Bambu Studio / OrcaSlicer: extruder per object and per (object, part), part names,
+    filament names."""
     from lxml import etree
 
     obj_ext: dict[str, str] = {}
     part_ext: dict[tuple[str, str], str] = {}
+    part_name: dict[tuple[str, str], str] = {}
     names = set(z.namelist())
     if "Metadata/model_settings.config" in names:
         root = etree.fromstring(z.read("Metadata/model_settings.config"),
@@ -210,11 +214,13 @@ def _slicer_extruders(z: zipfile.ZipFile) -> tuple[dict[str, str], dict[tuple[st
                 for md in part.findall("metadata"):
                     if md.get("key") == "extruder":
                         part_ext[(oid, part.get("id", ""))] = md.get("value", "")
+                    elif md.get("key") == "name":
+                        part_name[(oid, part.get("id", ""))] = md.get("value", "")
     filaments: list[str] = []
     if "Metadata/project_settings.config" in names:
         settings = json.loads(z.read("Metadata/project_settings.config"))
         filaments = [str(f) for f in settings.get("filament_settings_id", [])]
-    return obj_ext, part_ext, filaments
+    return obj_ext, part_ext, part_name, filaments
 
 
 def _filament(ext: str | None, filaments: Sequence[str]) -> str | None:
@@ -237,7 +243,7 @@ def _read_3mf(path: Path) -> tuple[list[_RawPart], str]:
         objects: dict[tuple[str, str], _Object] = {}
         try:
             items, mm = _read_model(z.read(main), main, objects)
-            obj_ext, part_ext, filaments = _slicer_extruders(z)
+            obj_ext, part_ext, part_name, filaments = _slicer_extruders(z)
         except Exception as exc:  # lxml, JSON, numbers: whatever is malformed, one line
             raise MeshFileError(path, f"malformed 3MF: {exc}") from None
         loaded = {main}
@@ -263,7 +269,7 @@ def _read_3mf(path: Path) -> tuple[list[_RawPart], str]:
                 raise MeshFileError(path, f"components of object {top} nest too deep (a cycle?)")
             if o.vertices is not None and o.faces is not None and len(o.faces):
                 v = (np.c_[o.vertices, np.ones(len(o.vertices))] @ tf.T)[:, :3] * mm
-                name = o.name if o.name and o.oid != top else top_name
+                name = part_name.get((top, o.oid)) or (o.name if o.oid != top else top_name)
                 try:
                     filament = _filament(part_ext.get((top, o.oid), ext), filaments)
                 except ValueError as exc:

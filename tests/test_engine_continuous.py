@@ -41,12 +41,18 @@ def test_frames_are_matched_to_the_marks_and_blur_is_reported(tmp_path) -> None:
             # pose up to the read-back's interpolation (it used to render the pose at read-out,
             # ω·(t_exp/2 + readout) = 0.58 deg later).
             assert f.meta["truth"]["azimuth_deg"] == pytest.approx(c["angle_deg"], abs=0.01)
+            # the recorded uncertainty is small and covers the real error of the interpolated pose
+            assert 0 <= c["pose_uncertainty_deg"] < 0.1  # 0 when read-backs take no clock time
+            assert abs(f.meta["truth"]["azimuth_deg"] - c["angle_deg"]) <= c["pose_uncertainty_deg"] + 2e-3
             assert abs(f.meta["truth"]["azimuth_deg"] - nominal) <= half_spacing + 0.01
         (p,) = _passes(s.store)
         assert p["dropped"] == 0 and p["matched"] == p["marks"] == 4 and p["missing_marks"] == []
         assert p["measured_speed_dps"] == pytest.approx(SPEED, abs=0.5)
         (fin,) = [e["payload"] for e in s.store.events() if e["kind"] == "run_finished"]
         assert fin["blur_deg"]["max"] == pytest.approx(SPEED * exposure)
+        # the physical floor beside the mode's bound: below both it and the run
+        assert 0 < fin["physical_floor_s"] <= fin["lower_bound_s"] <= fin["duration_s"]
+        assert fin["physical_efficiency"] == pytest.approx(fin["physical_floor_s"] / fin["duration_s"])
         assert s.store.verify() == []
         assert_rig_safe(s.rig)
 

@@ -143,6 +143,7 @@ def test_significance_sweep_lists_observed_rho():
     assert float(cells[-2]) == pytest.approx(r_obs, abs=1e-3)
     assert float(cells[-1]) == pytest.approx(stats.ttest_rel(MULTI_DICE, RGB_DICE).pvalue, rel=1e-2)
     assert float(cells[9]) == pytest.approx(hand_p(MULTI_DICE, RGB_DICE, 0.9)[1], rel=1e-2)
+    assert cells[-3] == "\\*\\* / \\*\\*"  # the marks at ρ = 0.9 and at the observed ρ agree
 
 
 def test_notes_say_when_there_is_no_ground_truth():
@@ -210,7 +211,7 @@ def test_observed_rho_beside_the_assumed_and_a_note_where_they_disagree():
     md = table2.to_markdown(rows)
     line = next(x for x in md.splitlines() if x.startswith("| ISS"))
     cells = [c.strip() for c in line.strip("|").split("|")]
-    assert cells[13] == f"{dice.rho_observed:.2f} – †"
+    assert cells[13] == f"{dice.rho_observed:.2f} ns †"
     vline = next(x for x in md.splitlines() if x.startswith("| Voyager"))
     vcells = [c.strip() for c in vline.strip("|").split("|")]
     assert vcells[13] == f"{vd.rho_observed:.2f} \\*\\* M"

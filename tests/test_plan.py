@@ -7,6 +7,7 @@ import json
 import math
 
 import pytest
+from m2s2hil.simulators.sensor import SensorParams
 from pydantic import ValidationError
 
 from m2s2hil.config import RigConfig, default_rig
@@ -23,6 +24,7 @@ from m2s2hil.plan import (
     physical_floor,
     switch_warmup_s,
 )
+from m2s2hil.plan.continuous import NoiseModel, SharpnessTarget, plan_continuous
 from m2s2hil.plan.floor import reach_time_s
 
 
@@ -374,3 +376,29 @@ def test_slower_turntable_raises_the_floor():
     fast, slow = make_rig(), make_rig(**{"axes.turntable.max_speed_dps": 30.0})
     s = Sweep(satellite="hubble", build="B1", lighting=["weak"], tilts=["E1"])
     assert s.physical_floor(slow).total_s > s.physical_floor(fast).total_s + 5
+
+
+# ------------------------------------------------------------------ continuous pass for a sharpness target
+def test_continuous_plan_keeps_blur_and_snr_and_comes_near_the_floor(rig):
+    s = Sweep(satellite="voyager", build="B3")
+    target = SharpnessTarget(max_blur_px=1.0, min_snr=20.0, radius_px=400.0)
+    p = plan_continuous(s, rig, target)
+    assert p.feasible and p.sweep.mode == "continuous" and p.gain > 1  # short exposures need gain
+    for c, cp in p.conditions.items():
+        assert cp.blur_px <= 1.0 + 1e-6 and cp.snr >= 20.0
+        assert cp.omega_dps <= rig.axes["turntable"].max_speed_dps
+        assert cp.brightest_fill <= 0.9 + 1e-6  # no condition pushed into saturation
+        assert p.sweep.exposure_for(c) == cp.exposure_s < s.exposure_for(c)
+    assert p.estimate.total_s <= 1.15 * s.physical_floor(rig).total_s
+    # a tighter blur bound at the same SNR floor: slower or infeasible, never silently blurrier
+    tight = plan_continuous(s, rig, target.model_copy(update={"max_blur_px": 0.3}))
+    assert not tight.feasible or tight.estimate.total_s > p.estimate.total_s
+    assert all(cp.blur_px <= 0.3 + 1e-6 for cp in tight.conditions.values())
+
+
+def test_noise_model_matches_the_simulated_sensor_and_its_snr_by_hand():
+    n, p = NoiseModel(), SensorParams()
+    assert (n.e_per_dn, n.read_noise_e, n.dark_e_per_s, n.full_well_e) == (
+        p.e_per_dn, p.read_noise_e, p.dark_current_e_per_s, p.full_well_e)
+    e, t, g = 1000.0, 0.002, 2.0
+    assert n.snr(e, t, g) == pytest.approx(e / math.sqrt(e + 125 * t + 13**2 + (13.2 / g) ** 2 / 12))

@@ -83,3 +83,4 @@ def test_a_checkpoint_of_another_architecture_is_refused_by_name(checkpoint, cub
         SamSegmenter(path, model_type="vit_x")
     with pytest.raises(AnalysisInputError, match="generator_options"):
         SamSegmenter(path, model_type=TINY, generator_options={"points_per_sid": 4}).segment(cube)
+

@@ -15,6 +15,7 @@ from m2s2hil.engine.fault_policy import FaultPolicy
 from m2s2hil.engine.state import RunState
 from m2s2hil.errors import ConfigError
 from m2s2hil.twin.checks import CheckConfig, sweep_checks
+from m2s2hil.twin.registration import Registrar, register_session, stored_registration
 from m2s2hil.twin.simulated import BenchFrame, SimBench, rig_with
 
 DEFAULT_RIG = Path(__file__).resolve().parents[1] / "m2s2hil" / "data" / "default_rig.toml"
@@ -107,8 +108,10 @@ def test_checks_run_on_the_first_frames_of_a_lighting_then_every_nth() -> None:
     assert due == [True, True, False, False, True, False, False, True, True, True, False]
 
 
-def test_the_fault_policy_pauses_on_a_twin_flag_and_the_frame_keeps_it(tmp_path: Path) -> None:
-    rig = rig_with(256, mount={"build": "B1"})  # the session says B3, B1 stands there
+def test_the_fault_policy_pauses_on_a_twin_flag_and_the_registration_is_stored(tmp_path: Path) -> None:
+    # The session says B3, B1 stands there, 6 mm off the axis (same silhouette: voyager's
+    # builds differ in filaments only).
+    rig = rig_with(256, mount={"build": "B1", "offset_mm": [6.0, 0.0]})
     qc = capture_qc_hook(twin=CheckConfig(confirm=1))
     policy = FaultPolicy(qc_pause=("wrong_build",))
     with session(tmp_path, small_sweep(), config=rig, qc=qc, policy=policy) as s:
@@ -119,3 +122,10 @@ def test_the_fault_policy_pauses_on_a_twin_flag_and_the_frame_keeps_it(tmp_path:
         assert "wrong_build" in flagged[0].meta["qc"]["twin"]["flags"]
         assert qc.summary()["flag_counts"]["wrong_build"] >= 1
         s.engine.abort()
+        s.engine.wait(timeout=60)
+        assert stored_registration(s.store) is None or stored_registration(s.store)["source"] == "capture"
+        reg = register_session(s.store, Registrar(rig.camera.model, levels=((48, 1.0),)))
+        stored = stored_registration(s.store)
+    assert stored is not None and stored["source"] == "session"
+    assert stored["placement"]["dx_mm"] == pytest.approx(reg.placement.dx_mm, abs=1e-3)
+    assert reg.placement.dx_mm > 3.0  # towards the 6 mm it stands off (from the few frames taken)

@@ -38,3 +38,27 @@ def test_label_iou_refuses_maps_of_different_shapes() -> None:
     assert label_iou(a, a) == 1.0
     with pytest.raises(ValueError, match="differ in shape"):
         label_iou(a, np.zeros((4, 5), np.uint8))
+
+
+def test_the_capture_qc_stores_projected_labels_once_registered() -> None:
+    """The QC hook with the twin's checks hands the engine each frame's projected labels
+    (``frame_files``) once the sweep's registration has a placement (3 frames over 180°)."""
+    from types import SimpleNamespace
+
+    from engine_helpers import small_sweep
+
+    from m2s2hil.analysis.qc import capture_qc_hook
+
+    qc = capture_qc_hook(twin=True)
+    qc.bind(small_sweep(satellite=twin_support.SAT, build=twin_support.BUILD), rig_with(256))
+    stored = []
+    for i, f in enumerate(twin_support.misplaced_frames()):
+        ev = SimpleNamespace(event_id=f"e{i}", lighting="weak", elevation="E0")
+        out = qc(SimpleNamespace(cube=f.cube, saturated_mask=None), ev, f.meta)
+        files = qc.frame_files(ev)
+        stored.append("projected_labels" in files)
+        if files:
+            assert files["projected_labels"].shape == f.cube.shape[1:]
+            meta = out["projected_labels"]
+            assert meta["source"] == "twin" and 0 < meta["confidence"] <= 1
+    assert stored == [False, False, True, True]

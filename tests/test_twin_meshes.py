@@ -105,6 +105,26 @@ def bambu_3mf(path: Path) -> Path:
     return path
 
 
+def painted_3mf(path: Path) -> Path:
+    """One object whose triangles name their base material (3MF core materials, pid/p1)."""
+    parts = list(hubble_parts().values())
+    mesh = trimesh.util.concatenate(parts)
+    owner = np.repeat(np.arange(len(parts)), [len(m.faces) for m in parts])
+    vs = "".join(f'<vertex x="{x}" y="{y}" z="{z}"/>' for x, y, z in mesh.vertices)
+    ts = "".join(f'<triangle v1="{a}" v2="{b}" v3="{c}" pid="9" p1="{k}"/>'
+                 for (a, b, c), k in zip(mesh.faces, owner, strict=True))
+    bases = "".join(f'<base name="PolyLite PLA {n}" displaycolor="#808080"/>'
+                    for n in ("Pro Silver", "Dark Grey", "Pro Metallic Blue", "Pro Metallic Magenta"))
+    model = ('<?xml version="1.0"?><model unit="millimeter" '
+             'xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02"><resources>'
+             f'<basematerials id="9">{bases}</basematerials><object id="1" name="hubble" pid="9" pindex="0">'
+             f'<mesh><vertices>{vs}</vertices><triangles>{ts}</triangles></mesh></object></resources>'
+             '<build><item objectid="1"/></build></model>')
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("3D/3dmodel.model", model)
+    return path
+
+
 def stl_folder(path: Path, names: dict[str, str] | None = None, scale: float = 1.0) -> Path:
     path.mkdir()
     for part, mesh in hubble_parts(scale).items():
@@ -138,9 +158,17 @@ def test_3mf_named_objects_load_with_units_origin_and_materials(tmp_path):
 
 def test_bambu_3mf_parts_take_their_extruders_filament(tmp_path):
     _, info = load_mesh_mockup(bambu_3mf(tmp_path / "b.3mf"), "hubble B2", B2)
-    assert [k for _, k, _ in info.parts] == ["pro_silver", "dark_grey", "pro_metallic_blue",
-                                             "pro_metallic_magenta"]
+    assert [(n, k) for n, k, _ in info.parts] == [
+        ("tube", "pro_silver"), ("band", "dark_grey"), ("panels", "pro_metallic_blue"),
+        ("door", "pro_metallic_magenta"),
+    ]
     assert info.origin_offset_mm[:2] == pytest.approx((-128.0, -128.0))  # the plate position, dropped
+
+
+def test_painted_3mf_splits_an_object_by_its_triangles_base_material(tmp_path):
+    _, info = load_mesh_mockup(painted_3mf(tmp_path / "p.3mf"), "hubble B2", B2)
+    got = {k: n for _, k, n in info.parts}
+    assert set(got) == set(B2) and sum(got.values()) == sum(len(m.faces) for m in hubble_parts().values())
 
 
 def test_stl_folder_one_file_per_material_renders_its_labels(tmp_path):

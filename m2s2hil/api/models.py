@@ -267,3 +267,10 @@ class BusyItem(_Out):
 
 class BusyOut(_Out):
     items: list[BusyItem]
+
+
+class ExportJobIn(BaseModel):
+    # strict: "true" or 1 for a boolean is refused, as the schema says
+    model_config = ConfigDict(extra="forbid", strict=True)
+    layout: Literal["m2s2", "hf", "zarr"] = "m2s2"
+    overwrite: bool = Field(False, description="Replace an earlier export of this session and layout.")

@@ -302,11 +302,13 @@ function histogram(bins, full) {
   ctx.clearRect(0, 0, w, h);
   if (!bins.length) return;
   const logs = bins.map((v) => Math.log10(1 + v)); const max = Math.max(...logs, 1); const bw = w / bins.length;
+  const css = getComputedStyle(document.documentElement);  // the theme's colours (light or dark)
+  const color = (name) => css.getPropertyValue(name).trim();
   for (let i = 0; i < bins.length; i++) {
-    ctx.fillStyle = i === bins.length - 1 && bins[i] > 0 ? "#ff4d4f" : "#4aa3ff";
+    ctx.fillStyle = i === bins.length - 1 && bins[i] > 0 ? color("--bad") : color("--accent");
     const bh = (logs[i] / max) * (h - 14); ctx.fillRect(i * bw, h - bh, Math.max(1, bw - 1), bh);
   }
-  ctx.fillStyle = "#8d98a3"; ctx.font = "11px sans-serif"; ctx.fillText("0", 2, 11); ctx.fillText(String(full), w - 30, 11);
+  ctx.fillStyle = color("--muted"); ctx.font = "11px sans-serif"; ctx.fillText("0", 2, 11); ctx.fillText(String(full), w - 30, 11);
 }
 
 $("live-toggle").addEventListener("click", () => (state.live ? stopLive() : startLive()));

@@ -4,11 +4,10 @@ An export takes from seconds to minutes (46 s for a Zarr store of a 36-frame ses
 shared machine), longer than a browser should hold a request open. :meth:`ExportJobs.start`
 answers at once with the job; the job runs :func:`~.export_lock.export_once` (so it excludes
 the CLI's and the synchronous endpoint's exports of the same folder) and records its phase,
-elapsed time and result; its start, end or failure also goes to the activity log. While a job
-of the same session and layout runs, another is refused (409, :mod:`.busy`). Jobs are kept in
-memory, the last :data:`KEEP` of them; the export itself is on disk
-(``<data root>/exports/<session>/<layout>/``) and downloadable as a zip
-(:func:`zip_chunks`).
+elapsed time and result; its start, end or failure also goes to the activity log. One job runs
+at a time: while one runs, another is refused (409, :mod:`.busy` for the same session and
+layout). Jobs are kept in memory, the last :data:`KEEP` of them; the export itself is on disk
+(``<data root>/exports/<session>/<layout>/``) and downloadable as a zip (:func:`zip_chunks`).
 """
 
 from __future__ import annotations
@@ -72,6 +71,11 @@ class ExportJobs:
             frames = len(store.frames())
         if not frames:
             raise Conflict(f"session {session_id} has no frames to export yet")
+        with self._lock:  # one at a time: an export is disk- and CPU-heavy, beside a capture too
+            running = next((j for j in self._jobs.values() if j.state == "running"), None)
+        if running is not None:
+            raise Conflict(f"the {running.layout} export of {running.session_id} is running (job "
+                           f"{running.job_id}): one export job at a time, wait for it to finish")
         busy = self._mg.busy.start(f"export:{session_id}:{layout}", f"the {layout} export of {session_id}")
         job = ExportJob(secrets.token_hex(6), session_id, layout, overwrite, frames=frames)
         busy.detail["job_id"] = job.job_id
@@ -142,7 +146,7 @@ def zip_chunks(folder: Path, arc_root: str, chunk: int = 1 << 20) -> Iterator[by
     """``folder`` as a zip (stored: the frames are compressed already), produced as it is read, so
     a large export is never held in memory or written twice."""
     sink = _Sink()
-    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:  # type: ignore[arg-type]
+    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:  # type: ignore[call-overload]
         for path in sorted(p for p in folder.rglob("*") if p.is_file() and not p.is_symlink()):
             arc = f"{arc_root}/{path.relative_to(folder).as_posix()}"
             with path.open("rb") as src, zf.open(arc, "w", force_zip64=True) as dst:

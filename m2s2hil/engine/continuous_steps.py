@@ -49,12 +49,11 @@ class SpeedSettings:
 
     def estimate(self, sweep: Sweep, config: RigConfig) -> ContinuousEstimate:
         """The plan's continuous model at this blur limit (or speed override)."""
-        blur = self.max_blur_px
-        if self.speed_dps is not None:
-            # ω = speed for the shortest exposure (exactly, when all conditions share it)
-            t = min(sweep.exposure_for(c) for c in sweep.lighting)
-            blur = self.radius_px * math.radians(self.speed_dps * t)
-        return estimate_continuous(sweep, config, radius_px=self.radius_px, max_blur_px=blur)
+        # With a speed override every condition turns at it, whatever its exposure (the
+        # estimate used to derive a blur limit from the shortest exposure, so longer ones
+        # were modelled slower than they ran: efficiency above 1).
+        return estimate_continuous(sweep, config, radius_px=self.radius_px, max_blur_px=self.max_blur_px,
+                                   speed_dps=self.speed_dps)
 
     def omega(self, sweep: Sweep, config: RigConfig, lighting: str, exposure_s: float) -> float:
         if self.speed_dps is not None:
@@ -146,6 +145,8 @@ class ContinuousSteps(SharedSteps):
                 meta["continuous"] = {
                     "mark_deg": match.mark_deg, "angle_deg": extra["angle_deg"],
                     "error_deg": extra["angle_deg"] - match.mark_deg, "speed_dps": extra["speed_dps"],
+                    # the interpolated read-back's own uncertainty (marks.AngleTrack.uncertainty_at)
+                    "pose_uncertainty_deg": extra.get("angle_uncertainty_deg"),
                     "commanded_speed_dps": speed, **blur.to_dict(),
                 }
                 if auto is not None:

@@ -41,9 +41,29 @@ class AngleTrack:
 
     def __init__(self, window: int = 32) -> None:
         self._samples: collections.deque[tuple[float, float]] = collections.deque(maxlen=window)
+        self._half: collections.deque[float] = collections.deque(maxlen=window)
 
-    def add(self, t: float, deg: float) -> None:
+    def add(self, t: float, deg: float, half_width_s: float = 0.0) -> None:
+        """A read-back ``deg`` known to have been taken within ``t ± half_width_s`` (the
+        query's round trip)."""
         self._samples.append((float(t), float(deg)))
+        self._half.append(float(half_width_s))
+
+    def uncertainty_at(self, t: float) -> float:
+        """How far :meth:`angle_at` may be off (degrees): the bracketing samples' time
+        uncertainty at their slope, plus, beyond the samples, the change of slope between the
+        last two intervals carried over the extrapolated time."""
+        s, h = self._samples, self._half
+        if len(s) < 2:
+            raise ValueError("need at least two read-back samples")
+        i = next((i for i in range(1, len(s)) if s[i][0] >= t), len(s) - 1)
+        (t0, a0), (t1, a1) = s[i - 1], s[i]
+        slope = abs(a1 - a0) / (t1 - t0) if t1 > t0 else 0.0
+        out = slope * max(h[i - 1], h[i])
+        if t > t1 and len(s) >= 3 and t1 > t0 and t0 > s[-3][0]:
+            prev = (a0 - s[-3][1]) / (t0 - s[-3][0])
+            out += abs((a1 - a0) / (t1 - t0) - prev) * (t - t1)
+        return out
 
     def __len__(self) -> int:
         return len(self._samples)
@@ -299,7 +319,7 @@ def run_pass(
         a = clock.monotonic()
         pos = float(tt.position())
         b = clock.monotonic()
-        track.add((a + b) / 2, pos)
+        track.add((a + b) / 2, pos, (b - a) / 2)
         speeds.add((a + b) / 2, pos)
         last_poll = b
 
@@ -339,6 +359,7 @@ def run_pass(
             except ValueError:
                 extra["speed_dps"] = None
             extra["angle_deg"] = angle
+            extra["angle_uncertainty_deg"] = track.uncertainty_at(t_mid)
             yield from release(matcher.offer(angle, frame, extra))
             if direction * (angle - end) > 0:
                 break

@@ -156,10 +156,12 @@ class ContinuousEstimate(PlanModel):
 
 def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
                         max_blur_px: float | None = None,
-                        events: Sequence[CaptureEvent] | None = None) -> ContinuousEstimate:
+                        events: Sequence[CaptureEvent] | None = None,
+                        speed_dps: float | None = None) -> ContinuousEstimate:
     """ω per condition: as fast as the turntable allows, but one azimuth step must take at
     least ``frames_per_pose`` frame intervals (frame interval = max(1/max_fps, exposure))
-    and, if given, the blur at ``radius_px`` must stay under ``max_blur_px``."""
+    and, if given, the blur at ``radius_px`` must stay under ``max_blur_px``. ``speed_dps``
+    fixes ω for every condition instead (the engine's speed override)."""
     if radius_px <= 0:
         raise UsageError(f"radius_px must be positive, not {radius_px}")
     tt, tl = rig.axes["turntable"], rig.axes["tilt"]
@@ -176,6 +178,8 @@ def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
         w = min(tt.max_speed_dps, step / (sweep.frames_per_pose * fi))
         if max_blur_px is not None:
             w = min(w, math.degrees(max_blur_px / radius_px) / exp)
+        if speed_dps is not None:
+            w = speed_dps
         omega[c], interval[c] = w, fi
         blur_deg[c] = w * exp
         blur_px[c] = radius_px * math.radians(blur_deg[c])

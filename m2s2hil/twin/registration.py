@@ -300,3 +300,13 @@ def stored_registration(store: Any) -> dict[str, Any] | None:
         if isinstance(twin, dict) and isinstance(twin.get("registration"), dict):
             return dict(twin["registration"], source="capture")
     return None
+
+
+def registration_text(reg: dict[str, Any]) -> str:
+    """One line for people: a stored registration (``stored_registration``'s dict)."""
+    p = Placement.from_dict(reg.get("placement") or {})
+    residual = float(reg.get("residual", 1.0))
+    return (f"offset ({p.dx_mm:+.2f}, {p.dy_mm:+.2f}) mm, yaw {p.yaw_deg:+.2f} deg, tilt bias "
+            f"{p.tilt_bias_deg:+.2f} deg, scale {p.scale:.3f}; residual {residual:.3f} "
+            f"over {int(reg.get('frames', 0))} frames ({float(reg.get('azimuth_span_deg', 0.0)):.0f} deg of "
+            f"azimuth; {reg.get('source', 'session')})")

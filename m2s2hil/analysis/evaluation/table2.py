@@ -22,8 +22,9 @@ two builds can have the same class count (Hubble B2 and B3 both have 4 materials
   plain text. Fewer than 2 paired images: no test ("–").
 - The assumption beside the data: each metric has a column "ρ̂" with the observed Pearson
   correlation of the row's paired scores and the marks the test gives at that ρ (which is
-  ``scipy.stats.ttest_rel``). Where those marks differ from the ones at the assumed ρ the
-  column carries a †, and a note under the table names the cell with both p-values.
+  ``scipy.stats.ttest_rel``; M/R: multi/RGB better, ns: not significant). Where those marks
+  differ from the ones at the assumed ρ the column carries a †, and a note under the table
+  names the cell with both p-values.
 - mTC per lighting condition (Dir / Weak / Strong): mean mTC of the multispectral
   segmenter over the row's images under that condition (images without ground truth
   count too: mTC needs none).
@@ -45,6 +46,7 @@ from m2s2hil.analysis.metrics.significance import (
     AssumedVsObserved,
     PairedTest,
     assumed_and_observed,
+    paired_t_test,
     rho_sensitivity,
 )
 from m2s2hil.catalog import load_catalog
@@ -200,7 +202,7 @@ def _marked(value: float, cell: MetricCell, side: str) -> str:
 
 
 def _escaped(stars: str) -> str:
-    return stars.replace("*", "\\*") if stars else "–"
+    return stars.replace("*", "\\*") if stars else "ns"  # ns: not significant at α = 0.05
 
 
 def _observed(cell: MetricCell) -> str:
@@ -354,7 +356,8 @@ def significance_markdown(
 ) -> str:
     """ρ sensitivity of every row's tests: p at each assumed ρ and at the observed correlation."""
     head = ["Satellite", "Build", "Elevation", "Metric", "n", "mean(multi − rgb)"]
-    head += [f"p (ρ={r:g})" for r in SENSITIVITY_RHOS] + ["observed ρ", "p (observed)"]
+    head += [f"p (ρ={r:g})" for r in SENSITIVITY_RHOS]
+    head += [f"marks ρ={rho:g} / observed", "observed ρ", "p (observed)"]
     lines = [
         f"# Significance: {multi} (multi) vs {rgb} (RGB), paired over images",
         "",
@@ -396,7 +399,10 @@ def significance_markdown(
                 f"{np.mean(np.subtract(a, b)):+.4f}",
             ]
             cols += [f"{t.p:.3g}" for t in sweep[:-1]]
-            cols += [_f(sweep[-1].rho_observed, 3), f"{sweep[-1].p:.3g}"]
+            both = AssumedVsObserved(paired_t_test(a, b, rho), sweep[-1])
+            marks = f"{_escaped(both.assumed.stars)} / {_escaped(both.observed.stars)}"
+            marks += "" if both.agree else " †"
+            cols += [marks, _f(sweep[-1].rho_observed, 3), f"{sweep[-1].p:.3g}"]
             lines.append("| " + " | ".join(cols) + " |")
     return "\n".join(lines) + "\n"
 
@@ -432,8 +438,8 @@ def notes(result: EvaluationResult, rows: Sequence[Table2Row]) -> list[str]:
         f"ρ = {o.rho:g} (significance.md sweeps ρ). The better value is marked: **bold**\\* p < 0.05, "
         "***bold italic***\\*\\* p < 0.01 (the paper: bold α = 0.05, italic α = 0.01); '–' = fewer than "
         "2 images. Each metric's ρ̂ column gives the observed correlation of the row's paired scores and "
-        "the marks at it (M/R: multi/RGB better; the plain paired t-test), † where they differ from the "
-        "marks at the assumed ρ.",
+        "the marks at it (M/R: multi/RGB better, ns: not significant; the plain paired t-test), † where "
+        "they differ from the marks at the assumed ρ.",
     ]
     if o.mtc_for == "none":
         out.append("mTC was not computed (--mtc none).")

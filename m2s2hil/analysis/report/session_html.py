@@ -42,15 +42,24 @@ from m2s2hil.processing.display import false_colour
 from m2s2hil.store.frame_files import decode_image, decode_tiff
 from m2s2hil.store.session import SessionStore
 
+# The operator console's palette (m2s2hil/console/console.css): light, or dark when the system
+# asks for it, so the report opened from the console looks like it. The per-pose score cells keep
+# their light backgrounds in both (dark text on them).
 CSS = """
-body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
-h1{font-size:1.4em} h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid #ccc}
-table{border-collapse:collapse;font-size:.85em} td,th{border:1px solid #ddd;padding:2px 6px;text-align:right}
-th{background:#f4f4f4} td.l,th.l{text-align:left}
+:root{--bg:#f3f5f7;--card:#fff;--line:#c9d0d7;--fg:#1a1f24;--muted:#5b6670;--head:#e4e8ec;--ok:#137a3f;
+--bad:#c8102e;--okline:#8fd1a8;color-scheme:light}
+@media (prefers-color-scheme: dark){:root{--bg:#15181c;--card:#1f242a;--line:#323941;--fg:#e6e9ec;
+--muted:#8d98a3;--head:#0f1215;--ok:#3ccf7a;--bad:#ff4d4f;--okline:#1d4d33;color-scheme:dark}}
+body{font-family:system-ui,sans-serif;margin:1.5em;color:var(--fg);background:var(--bg)}
+h1{font-size:1.4em} h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid var(--line)}
+table{border-collapse:collapse;font-size:.85em}
+td,th{border:1px solid var(--line);padding:2px 6px;text-align:right}
+th{background:var(--head)} td.l,th.l{text-align:left} td.score{color:#1a1f24}
 .sheet{display:flex;flex-wrap:wrap;gap:6px}
-figure{margin:0;padding:3px;border:3px solid #cfe8cf;background:#fafafa;font-size:.72em;text-align:center}
-figure.flagged{border-color:#d9534f} figure.noqc{border-color:#ccc}
-figure img{display:block} .flags{color:#b52b27}
+figure{margin:0;padding:3px;border:3px solid var(--okline);background:var(--card);font-size:.72em;
+text-align:center}
+figure.flagged{border-color:var(--bad)} figure.noqc{border-color:var(--line)}
+figure img{display:block} .flags{color:var(--bad)} a{color:inherit}
 """
 
 
@@ -239,6 +248,11 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
         out.append("<p>No QC scores.</p>")
     counts = summary.get("flag_counts", {})
     out.append("<p>Flags: " + ", ".join(f"{_esc(k)} {counts.get(k, 0)}" for k in FLAGS) + ".")
+    from m2s2hil.twin.registration import registration_text, stored_registration
+
+    reg = stored_registration(store)  # the twin's placement of the mockup (docs/twin.md)
+    if reg is not None:
+        out.append(f"<p>Registration: {_esc(registration_text(reg))}.</p>")
     if summary.get("computed_at_report"):
         out.append(
             f" {summary['computed_at_report']} frame(s) had no stored QC and were scored at report time."
@@ -266,7 +280,7 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
                 v = min(hits, key=lambda x: x.score if x.score is not None else -1.0)
                 tip = _esc(f"{v.event_id}: {', '.join(v.flags) or 'ok'}")
                 cells.append(
-                    f"<td title='{tip}' style='background:{_colour(v.score, v.flags, thr)}'>"
+                    f"<td class=score title='{tip}' style='background:{_colour(v.score, v.flags, thr)}'>"
                     f"{_score_text(v.score)}</td>"
                 )
             if any(c != "<td></td>" for c in cells):

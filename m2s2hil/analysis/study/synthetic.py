@@ -58,3 +58,27 @@ def synthetic_scene(
         cube[:, sel] = spec[m][:, None] * shading[sel][None, :]
     cube += rng.normal(0.0, noise, size=cube.shape)
     return np.clip(cube, 0.0, None).astype(np.float32), gt
+
+
+def exposed_scene(
+    peak_fraction: float,
+    shape: tuple[int, int] = (64, 64),
+    n_materials: int = 3,
+    *,
+    full_scale: float = 1000.0,
+    e_per_dn: float = 13.2,
+    read_noise_e: float = 13.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``synthetic_scene`` as a sensor records it at an exposure: the brightest material band
+    peaks at ``peak_fraction`` of ``full_scale`` DN, shot and read noise (electrons, as
+    ``simulators.sensor``), values clipped to [0, full_scale] — over 1 the bright bands clip,
+    at a few percent the dark pixels drown in read noise. Same scene for every exposure."""
+    if not peak_fraction > 0:
+        raise AnalysisInputError("peak_fraction", f"must be > 0, got {peak_fraction}")
+    clean, gt = synthetic_scene(shape, n_materials, noise=0.0, background_level=0.0, seed=seed)
+    signal_dn = clean.astype(np.float64) * (peak_fraction * full_scale / float(clean.max()))
+    rng = np.random.default_rng(seed + 1)
+    electrons = signal_dn * e_per_dn
+    noisy = electrons + rng.standard_normal(clean.shape) * np.sqrt(electrons + read_noise_e**2)
+    return np.clip(noisy / e_per_dn, 0.0, full_scale).astype(np.float32), gt

@@ -124,6 +124,9 @@ def _spectrum(raw: np.ndarray, dark: np.ndarray | None, dark_label: str | None, 
 def _frame(store: SessionStore, session_id: str, n: int) -> FrameRecord:
     for fr in store.frames():
         if fr.index == n:
+            if "raw" not in fr.files and "cube" not in fr.files:
+                raise Conflict(f"frame {n} of session {session_id} has no raw mosaic or cube (a synthetic "
+                               "render): no spectrum or band images")
             return fr
     raise UnknownSession(f"session {session_id} has no frame {n} (frames are numbered by their index in "
                          "the plan; GET /sessions/{id}/frames lists them)")
@@ -138,6 +141,8 @@ def frame_spectrum(mg: Manager, console: ConsoleDep, session_id: SessionId, n: F
     a white reference, reflectance."""
     with mg.reads.reading(session_id) as store:
         fr = _frame(store, session_id, n)
+        if "raw" not in fr.files:
+            raise Conflict(f"frame {n} of session {session_id} has no raw mosaic: no spectrum")
         raw, _ = decode_tiff(store.read_file(fr.files["raw"]))
         dark = store.load_dark(fr.dark_id) if fr.dark_id else None
     ev = fr.meta.get("event") or {}

@@ -106,7 +106,7 @@ def get_activity(
     """The daemon's activity log, oldest first: faults, retries, state changes, sessions' ends,
     holds and operator actions (with who and from where). Poll with ``since`` = the ``last_seq``
     of the previous answer; ``gap`` says entries after ``since`` are gone from the ring."""
-    kinds = set(kind) if kind else None
+    kinds: set[str] | None = set(kind) if kind else None
     items, next_seq, gap = mg.activity.since(since, limit=limit, kinds=kinds, session_id=session_id)
     return {"items": [a.to_dict() for a in items], "last_seq": next_seq, "newest_seq": mg.activity.last_seq,
             "gap": gap}

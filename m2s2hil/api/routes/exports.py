@@ -17,8 +17,7 @@ from fastapi.responses import Response, StreamingResponse
 from m2s2hil.daemon.export_jobs import zip_chunks
 
 from ..common import CONFLICT, CROSS_SITE, NOT_FOUND, Manager, SessionId
-from ..console.browser import ExportIn
-from ..models import ExportJobOut, ExportJobs
+from ..models import ExportJobIn, ExportJobOut, ExportJobs
 
 router = APIRouter(tags=["session browser"])
 JobId = Annotated[str, Path(pattern=r"^[0-9a-f]{12}$", description="As returned by POST …/export/jobs.")]
@@ -27,7 +26,7 @@ Layout = Literal["m2s2", "hf", "zarr"]
 
 @router.post("/sessions/{session_id}/export/jobs", status_code=202, response_model=ExportJobOut,
              responses={**NOT_FOUND, **CONFLICT, **CROSS_SITE})
-def start_export(mg: Manager, session_id: SessionId, body: ExportIn) -> dict:
+def start_export(mg: Manager, session_id: SessionId, body: ExportJobIn) -> dict:
     """Start exporting the session (``layout``: m2s2, hf or zarr) in the background; 409 while an
     export of the same session and layout runs, or when the session has no frame yet."""
     return mg.exports.start(session_id, body.layout, overwrite=body.overwrite).to_dict()

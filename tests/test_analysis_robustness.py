@@ -1,0 +1,88 @@
+"""Issue 23 item 1: the spectral segmenter holds its count of materials under low exposure and
+clipping (``segmenters.normalise``: clipped bands and near-black pixels kept out of the fit).
+Each test also runs the old behaviour (``robust=False``) where it failed, so it can fail."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.analysis.segmenters.normalise import PLATEAU_REL_TOL, clipped_bands, normalise_cube, reliability
+from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, foreground_mask
+from m2s2hil.analysis.study.simframes import simulated_frames, visible_materials
+from m2s2hil.analysis.study.synthetic import exposed_scene
+
+
+def n_segments(cube: np.ndarray, **options: object) -> int:
+    return SpectralSegmenter(**options).analyse(cube).n_materials  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def dim_single_material():
+    # Voyager B1 (silver only), weak light, exposed to 4 % of full scale, 128² cube
+    return next(iter(simulated_frames(satellites=["voyager"], builds=["B1"], lightings=["weak"],
+                                      elevations=["E1"], azimuths=[30.0], size=512, peak_fraction=0.04)))
+
+
+def test_single_material_build_at_4_percent_peak_is_one_segment(dim_single_material):
+    f = dim_single_material
+    assert visible_materials(f.gt) == 1 and float(f.cube.max()) < 0.1 * 1023
+    assert n_segments(f.cube) == 1
+    assert n_segments(f.cube, robust=False) > 1  # the old behaviour split it
+
+
+def test_k_at_10_and_150_percent_matches_k_at_60(n_materials: int = 4):
+    cubes = {p: exposed_scene(p, (64, 64), n_materials)[0] for p in (0.1, 0.6, 1.5)}
+    k = {p: n_segments(c) for p, c in cubes.items()}
+    assert k[0.6] == n_materials
+    assert k[0.1] == k[0.6] and k[1.5] == k[0.6]
+    assert n_segments(cubes[1.5], robust=False) != n_materials  # clipping split materials before
+
+
+def test_clipped_pixels_are_masked_and_labelled():
+    cube, _ = exposed_scene(1.5, (64, 64), 3)
+    fg, _ = foreground_mask(cube, "backdrop")
+    truth = cube >= 1000.0  # exposed_scene clips at full scale 1000
+    found = clipped_bands(cube, fg)
+    # every clipped value is found; nothing more than the plateau's tolerance below full scale
+    assert truth[:, fg].any() and np.all(found[truth & fg[None]])
+    assert np.all(cube[found] >= 1000.0 * (1 - PLATEAU_REL_TOL))
+    result = SpectralSegmenter().analyse(cube)
+    assert result.unreliable is not None and result.fit is not None
+    used = list(result.bands)
+    sat = truth[used].any(axis=0) & fg
+    assert sat.any() and np.all(result.unreliable[sat]) and not np.any(result.fit[sat])
+    assert np.all(result.labels[sat] > 0)  # masked out of the fit, still labelled
+    # a natural (unclipped) cube has no plateau, and neither has a dim, quantised one
+    for peak in (0.6, 0.04):
+        c, _ = exposed_scene(peak, (64, 64), 3)
+        assert not clipped_bands(np.round(c * 2) / 2, fg).any()
+
+
+def test_near_black_pixels_are_unreliable_and_a_given_mask_is_used():
+    cube, _ = exposed_scene(0.6, (64, 64), 3)
+    cube[:, 30:34, 10:20] *= 0.002  # a deep shadow inside the object
+    fg, _ = foreground_mask(cube, "backdrop")
+    rel = reliability(cube, fg)
+    shadow = np.zeros(fg.shape, dtype=bool)
+    shadow[30:34, 10:20] = True
+    assert np.all(rel.dark[shadow & fg]) and rel.dark[fg & ~shadow].mean() < 0.01
+    given = np.zeros(fg.shape, dtype=bool)
+    given[20:24, 40:44] = True
+    assert np.all(reliability(cube, fg, saturated=given).saturated[given & fg])
+    with pytest.raises(AnalysisInputError):
+        reliability(cube, fg, saturated=np.zeros((3, 3), dtype=bool))
+
+
+def test_white_reference_and_exposure_normalisation():
+    cube, _ = exposed_scene(0.6, (32, 32), 2)
+    white = np.linspace(0.5, 1.0, cube.shape[0])
+    out = normalise_cube(cube, white=white, exposure_s=0.01, gain=2.0)
+    np.testing.assert_allclose(out[:, 5, 5], cube[:, 5, 5] / white / 0.02, rtol=1e-6)
+    with pytest.raises(AnalysisInputError):
+        normalise_cube(cube, white=np.zeros(cube.shape[0]))
+    with pytest.raises(AnalysisInputError):
+        normalise_cube(cube, white=np.ones(3))
+    with pytest.raises(AnalysisInputError):
+        SpectralSegmenter(snr_min=-1)
