@@ -32,6 +32,7 @@ from m2s2hil.plan import Sweep
 from m2s2hil.plan.continuous import SharpnessTarget, plan_continuous
 from m2s2hil.store.session import SessionStore
 
+ROOT = Path(__file__).resolve().parents[1]
 BUILD = dict(satellite="voyager", build="B3")
 MARKS = [15.0, 75.0, 135.0, 195.0, 255.0, 315.0]
 
@@ -68,7 +69,11 @@ def main() -> None:
     ap.add_argument("--blur", default="1.0", help="blur bounds (px at the rim, 2048² sensor) of 'planned'")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--sharpness", action="store_true", help="measure the planned passes' sharpness at 2048²")
+    ap.add_argument("--chart", nargs="+", type=Path, help="only draw the chart from these --json files")
     a = ap.parse_args()
+    if a.chart:
+        chart(a.chart, ROOT / "docs" / "images" / "rig_time_vs_sharpness.png")
+        return
     cfg = rig_config(a.size)
     modes = set(a.modes.split(","))
     print(describe_machine(), file=sys.stderr)
@@ -85,9 +90,20 @@ def main() -> None:
             rows.append(one(cfg, Sweep(**BUILD), root / "ov", "stop-and-go, overlapped",
                             EngineOptions(save_truth=False)))
         if "continuous" in modes:
-            for v in [float(x) for x in a.speeds.split(",") if x]:
+            speeds = [float(x) for x in a.speeds.split(",") if x]
+            for v in speeds:
                 rows.append(one(cfg, Sweep(**BUILD, mode="continuous"), root / f"c{v:g}",
-                                f"continuous {v:g}°/s", EngineOptions.of(speed_dps=v, save_truth=False)))
+                                f"continuous {v:g}°/s", EngineOptions.of(speed_dps=v)))
+                rows[-1]["speed_dps"] = v
+            if a.sharpness:
+                exp = Sweep(**BUILD).exposure_for("weak")
+                sh = measure_sharpness(2048, speeds, MARKS, exp)
+                for r in sh["rows"]:
+                    row = next(x for x in rows if x.get("speed_dps") == r["speed_dps"])
+                    row["sharpness"] = {"rows": [r], "floor": sh["floor"], "floor_min": sh["floor_min"]}
+                    print(f"|   sharpness at {r['speed_dps']:g}°/s (weak, {exp * 1e3:g} ms, 2048²) | mean "
+                          f"{r['sharpness']:.4f}, worst {r['sharpness_min']:.4f}; still-frame floor "
+                          f"{sh['floor']:.4f} |", flush=True)
         if "planned" in modes:
             radius = mockup_radius_px(256) * 2048 / 256  # the rim in full-resolution pixels
             for b in [float(x) for x in a.blur.split(",") if x]:
@@ -109,6 +125,43 @@ def main() -> None:
                           flush=True)
     if a.json:
         a.json.write_text(json.dumps(rows, indent=2))
+
+
+def chart(paths: list[Path], out: Path) -> None:
+    """Rig time against measured sharpness from one or more ``--json`` files (rows without a
+    sharpness measurement are drawn at the still-frame noise floor when they are stop-and-go)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for p in paths for r in json.loads(p.read_text())]
+    floor = next((r["sharpness"]["floor"] for r in rows if r.get("sharpness")), 1.0)
+    fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=120)
+    for r in rows:
+        sh = r.get("sharpness")
+        if sh is None and not r["run"].startswith("stop-and-go"):
+            continue
+        y, lo = (floor, floor) if sh is None else (sh["rows"][0]["sharpness"], sh["rows"][0]["sharpness_min"])
+        colour = "tab:blue" if r["run"].startswith("stop") else (
+            "tab:green" if "planned" in r["run"] else "tab:orange")
+        ax.errorbar(r["sim_s"], y, yerr=[[y - lo], [0]], fmt="o", color=colour, capsize=3)
+        name = r["run"].split(":")[0].replace(" (before: no overlap)", ", before")
+        pe = r.get("pose") or {}
+        if pe.get("max_error_deg") is not None and pe["max_error_deg"] == pe["max_error_deg"]:
+            name += f"\npose err ≤ {pe['max_error_deg']:.3f}°"
+        ax.annotate(name, (r["sim_s"], y), textcoords="offset points", xytext=(6, -12), fontsize=7)
+    fl = rows[0]["physical_floor_s"]
+    ax.axvline(fl, color="grey", ls="--", lw=1)
+    ax.axvline(1.15 * fl, color="grey", ls=":", lw=1)
+    ax.axhline(0.99, color="red", ls=":", lw=1)
+    ax.text(fl, ax.get_ylim()[0], " physical floor", fontsize=7, va="bottom", color="grey")
+    ax.set_xlabel("rig time of a full build, 324 frames (s, virtual clock)")
+    ax.set_ylabel("sharpness vs a still frame (mean, bar to worst)")
+    ax.set_title("Rig time against sharpness (weak light, 2048²; bench_rig_time.py)", fontsize=9)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
 
 
 if __name__ == "__main__":

@@ -5,11 +5,13 @@ Each cell renders the simulator's frames (``analysis.study.simframes.simulated_f
 the segmenter before (``robust=False``) and after (``robust=True``, the default) the exposure /
 clipping / noise handling of ``segmenters.normalise``. Per cell and segmenter: the share of
 frames with K within ±1 of the visible materials, mean K − true, mean macro Dice and its
-difference to the reference cell (peak 60 %, weak light, 512² sensor: 128² cubes) of the same segmenter.
+difference to the reference cell (peak 60 %, weak light, 1024² sensor: 256² cubes, the size
+of the issue-15 model-selection study; at 128² cubes the 10-material builds already fail there)
+of the same segmenter.
 
 Run (minutes on 2 cores; results to docs/images/robustness.{json,png})::
 
-    nice -n 10 .venv/bin/python benchmarks/bench_robustness.py [--size 512] [--only peak-4%,...]
+    nice -n 10 .venv/bin/python benchmarks/bench_robustness.py [--size 1024] [--only peak-4%,...]
 """
 
 from __future__ import annotations
@@ -30,11 +32,11 @@ OUT = ROOT / "docs" / "images"
 # name -> simulated_frames keywords (lighting "weak" unless given); "peak-60%" is the reference
 CELLS: dict[str, dict[str, Any]] = {
     **{f"peak-{round(p * 100)}%": {"peak_fraction": p}
-       for p in (0.02, 0.05, 0.1, 0.6, 1.5, 2.0)},
-    **{f"spot-{a}°": {"lightings": ("directional",), "spot_angle_deg": float(a)} for a in (0, 80, 85)},
+       for p in (0.02, 0.04, 0.05, 0.1, 0.3, 0.6, 1.0, 1.5, 2.0)},
+    **{f"spot-{a}°": {"lightings": ("directional",), "spot_angle_deg": float(a)} for a in (0, 45, 80, 85)},
     "read-noise-40e": {"read_noise_e": 40.0},
     "temp-45C": {"temperature_c": 45.0},
-    "sensor-1024": {"size": 1024},
+    "sensor-512": {"size": 512},
     "fill-0.25": {"fill": 0.25},
 }
 REFERENCE = "peak-60%"
@@ -123,7 +125,7 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=512, help="sensor side (cube side = size / 4)")
+    ap.add_argument("--size", type=int, default=1024, help="sensor side (cube side = size / 4)")
     ap.add_argument("--only", default="", help="comma-separated cell names")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()

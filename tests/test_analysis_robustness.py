@@ -20,9 +20,9 @@ def n_segments(cube: np.ndarray, **options: object) -> int:
 
 @pytest.fixture(scope="module")
 def dim_single_material():
-    # Voyager B1 (silver only), weak light, exposed to 4 % of full scale, 128² cube
+    # Voyager B1 (silver only), weak light, exposed to 4 % of full scale, 64² cube
     return next(iter(simulated_frames(satellites=["voyager"], builds=["B1"], lightings=["weak"],
-                                      elevations=["E1"], azimuths=[30.0], size=512, peak_fraction=0.04)))
+                                      elevations=["E1"], azimuths=[30.0], size=256, peak_fraction=0.04)))
 
 
 def test_single_material_build_at_4_percent_peak_is_one_segment(dim_single_material):
@@ -33,7 +33,7 @@ def test_single_material_build_at_4_percent_peak_is_one_segment(dim_single_mater
 
 
 def test_k_at_10_and_150_percent_matches_k_at_60(n_materials: int = 4):
-    cubes = {p: exposed_scene(p, (64, 64), n_materials)[0] for p in (0.1, 0.6, 1.5)}
+    cubes = {p: exposed_scene(p, (48, 48), n_materials)[0] for p in (0.1, 0.6, 1.5)}
     k = {p: n_segments(c) for p, c in cubes.items()}
     assert k[0.6] == n_materials
     assert k[0.1] == k[0.6] and k[1.5] == k[0.6]

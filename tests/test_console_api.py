@@ -168,6 +168,18 @@ def test_live_view_waits_for_a_cold_camera_and_says_why_it_stopped() -> None:
         assert time.monotonic() < deadline
         time.sleep(0.01)
     assert live.state == "idle" and "no viewer" in (live.stopped_reason or "")
+    # a camera stuck in its read: the viewer is told, then the stream ends with the reason
+    gate.clear()
+    stuck = LiveStream(model, grab, idle_stop_s=0.0)
+
+    async def view_stuck() -> list:
+        return [item async for item in stuck.aframes(max_frames=1, notice_s=0.05, give_up_s=0.3)]
+
+    try:
+        got = asyncio.run(view_stuck())
+    finally:
+        gate.set()
+    assert got[0].state == "waiting" and got[-1].state == "ended" and "gave up" in got[-1].reason
 
 
 def test_live_view_longer_exposure_saturates_more(d) -> None:

@@ -201,3 +201,24 @@ def test_keyboard_jog_with_the_step_picker(console) -> None:
     page.keyboard.press("ArrowLeft")
     wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 19)) < 0.05, "a 1° turntable jog")
     assert abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02
+
+
+def test_light_and_dark_follow_the_system_and_the_report_matches(console) -> None:
+    from m2s2hil.analysis.report.session_html import CSS
+
+    _, page, _ = console
+    colours = "() => [getComputedStyle(document.body).backgroundColor, getComputedStyle(document.body).color]"
+    report = page.context.browser.new_page()
+    report.set_content(f"<!doctype html><html><head><style>{CSS}</style></head><body>report</body></html>")
+    seen = {}
+    for scheme in ("light", "dark"):
+        page.emulate_media(color_scheme=scheme)
+        report.emulate_media(color_scheme=scheme)
+        seen[scheme] = page.evaluate(colours)
+        assert report.evaluate(colours) == seen[scheme], scheme  # the report in the console's colours
+        if os.environ.get("M2S2HIL_SCREENSHOTS"):
+            page.screenshot(path=str(Path(os.environ["M2S2HIL_SCREENSHOTS"]) / f"console_{scheme}.png"))
+    assert seen["light"] != seen["dark"]
+    assert seen["light"][0] == "rgb(243, 245, 247)" and seen["dark"][0] == "rgb(21, 24, 28)"
+    report.close()
+    page.emulate_media(color_scheme="dark")

@@ -402,3 +402,17 @@ def test_noise_model_matches_the_simulated_sensor_and_its_snr_by_hand():
         p.e_per_dn, p.read_noise_e, p.dark_current_e_per_s, p.full_well_e)
     e, t, g = 1000.0, 0.002, 2.0
     assert n.snr(e, t, g) == pytest.approx(e / math.sqrt(e + 125 * t + 13**2 + (13.2 / g) ** 2 / 12))
+
+
+def test_overlapped_estimate_hides_each_readout_under_the_next_move():
+    rig = make_rig()
+    s = Sweep(satellite="hubble", build="B1", lighting=["weak"], tilts=["E1"], azimuth_step_deg=90,
+              settle_s=0.2, dark={"frames": 2})
+    ev = s.expand(rig)
+    plain, over = estimate(ev, rig), estimate(ev, rig, overlap=True)
+    readout = 1 / 65
+    # 4 frames, 3 moves of 2 s: three readouts run during a move, only the last one counts
+    assert over.breakdown["readout"] == pytest.approx(readout)
+    assert plain.total_s - over.total_s == pytest.approx(3 * readout)
+    assert over.lower_bound_s <= over.total_s < plain.total_s
+    assert over.breakdown["motion"] == plain.breakdown["motion"]

@@ -3,10 +3,12 @@ twin's checks during the sweep: flags in the frame's QC, and the fault policy pa
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import run_cli
 from engine_helpers import session, small_sweep, wait_for_state
 
 from m2s2hil.analysis.qc import capture_qc_hook
@@ -129,3 +131,6 @@ def test_the_fault_policy_pauses_on_a_twin_flag_and_the_registration_is_stored(t
     assert stored is not None and stored["source"] == "session"
     assert stored["placement"]["dx_mm"] == pytest.approx(reg.placement.dx_mm, abs=1e-3)
     assert reg.placement.dx_mm > 3.0  # towards the 6 mm it stands off (from the few frames taken)
+    shown = run_cli("sessions", "show", "s1", "--root", tmp_path / "data", "--json")
+    assert shown.exit_code == 0, shown.stderr
+    assert json.loads(shown.stdout)["registration"]["placement"] == stored["placement"]

@@ -185,7 +185,7 @@ def _material_spectra(cube: np.ndarray, cfg: QcConfig) -> np.ndarray:
     small = block_reduce(cube, cfg.model_size).astype(np.float32)
     seg = SpectralSegmenter(  # the model the QC thresholds were set with (before issue 15)
         max_materials=cfg.max_materials, sample_size=4096, seed=0, merge_angle_deg=cfg.merge_angle_deg,
-        fit_pixels="all", brightness_weight=0.0, foreground="otsu",
+        fit_pixels="all", brightness_weight=0.0, foreground="otsu", robust=False,
     )
     labels = seg.segment(small)
     out = []

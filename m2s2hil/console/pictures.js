@@ -49,7 +49,7 @@ const pictures = (() => {
       const ctx = canvas.getContext("2d");
       ctx.clearRect(0, 0, W, H);
       const fg = css("--fg", "#e6e9ec"), muted = css("--muted", "#8d98a3"), line = css("--line", "#323941");
-      const blue = css("--accent", "#4aa3ff"), orange = "#ff9f43";
+      const blue = css("--accent", "#4aa3ff"), orange = css("--pic-refl", "#ff9f43");
       const s = last;
       const refl = s && s.reflectance ? s.reflectance : null;
       const L = 58 * dpr, R = (refl ? 50 : 14) * dpr, T = 12 * dpr, B = 36 * dpr;

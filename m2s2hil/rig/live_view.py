@@ -73,6 +73,9 @@ class LiveNotice:
 
 #: How long a viewer waits for a frame before it is told what the stream waits for.
 WAIT_NOTICE_S = 2.0
+#: How long a viewer waits without a frame, an error or a busy notice before its stream ends
+#: (a camera stuck in a read): far beyond a cold start (5 s at 2048² on a loaded machine).
+GIVE_UP_S = 60.0
 
 
 class LiveRenderer:
@@ -341,14 +344,15 @@ class LiveStream:
                 self._viewers -= 1
                 self._last_viewer = time.monotonic()
 
-    async def aframes(self, *, max_frames: int | None = None,
-                      notice_s: float = WAIT_NOTICE_S) -> AsyncGenerator[LiveFrame | LiveNotice, None]:
+    async def aframes(self, *, max_frames: int | None = None, notice_s: float = WAIT_NOTICE_S,
+                      give_up_s: float = GIVE_UP_S) -> AsyncGenerator[LiveFrame | LiveNotice, None]:
         """Newest frames for one viewer on an event loop, each at most once; it waits without a
         thread. Instead of a frame: a :class:`LiveNotice` when the camera is unavailable (``busy``,
         ``error``), and one every ``notice_s`` without a frame (``waiting``: starting, or slow).
-        Ends after ``max_frames`` frames, or when the producer has stopped for good
-        (:attr:`stopped_reason`). The viewer counts from its first step until the generator is
-        closed (the daemon closes it when the connection goes)."""
+        Ends after ``max_frames`` frames, when the producer has stopped for good
+        (:attr:`stopped_reason`), or after ``give_up_s`` without a frame or a reason for its absence
+        (a last notice, state ``ended``, says so). The viewer counts from its first step until the
+        generator is closed (the daemon closes it when the connection goes)."""
         waiter = (asyncio.get_running_loop(), asyncio.Event())
         with self._cond:
             self._viewers += 1
@@ -356,6 +360,7 @@ class LiveStream:
             self._ensure_running()
             last = self._latest.seq if self._latest is not None else 0
         sent = 0
+        progress_at = time.monotonic()  # the last frame, or the last word on why there is none
         try:
             while max_frames is None or sent < max_frames:
                 with self._cond:
@@ -374,8 +379,13 @@ class LiveStream:
                     try:
                         await asyncio.wait_for(waiter[1].wait(), notice_s)
                     except TimeoutError:
+                        if time.monotonic() - progress_at > give_up_s:
+                            yield LiveNotice("ended", f"no frame from the camera for {give_up_s:g} s: the "
+                                             "live view gave up (the camera may be stuck); start it again")
+                            return
                         yield LiveNotice("waiting", self._waiting_for())
                     continue
+                progress_at = time.monotonic()
                 yield item
                 if isinstance(item, LiveNotice):
                     await asyncio.sleep(0.25)

@@ -136,9 +136,10 @@ class RigOps:
             return False
         self._pose[role] = None
         ax = self.axis(role)
-        start = float(ax.position())
-        since = self.clock.monotonic()
+        # The verified read-back is where the move starts (no status query: it costs a round trip).
+        start = float(ax.position()) if cur is None else cur
         ax.move_to(target, wait=False)
+        since = self.clock.monotonic()  # once acknowledged, as move_to times its own wait
         self._heading[role] = (start, target, since)
         return True
 

@@ -14,18 +14,24 @@ What stands on the turntable should be what the session says, where it says. For
    satellite, or none). A displacement along the line of sight does not move an
    orthographic silhouette: it shows only once the turntable has turned (docs/twin.md).
 2. **Materials.** The twin's label map, aligned, says which filament each pixel should show;
-   its shaded render under the frame's lamps predicts that pixel's spectrum. ``wrong_build``:
-   more than ``max_wrong_fraction`` of the confidently labelled pixels (regions eroded by a
-   pixel, unsaturated) have a spectrum more than ``spectrum_deg`` from the prediction.
-3. **Lamps.** The frame is fitted as a non-negative mix of the twin rendered under each lit
-   lamp alone, exposure and gain applied (``scipy.optimize.nnls``): a lamp's factor is its
-   output relative to nominal. ``lamp_out`` below ``out_factor``, ``lamp_dim`` below
-   ``dim_factor`` (the factors per lamp name are in the result).
+   its shaded render under the frame's lamps predicts that pixel's spectrum. A filament
+   region (eroded by a pixel, unsaturated) is wrong when its median spectrum is more than
+   ``spectrum_deg`` from the prediction or its brightness, relative to the frame's, off by
+   more than ``brightness_ratio``. ``wrong_build``: wrong regions hold more than
+   ``max_wrong_fraction`` of the pixels, or two regions are wrong, or one of at least 3 % is
+   far off (twice the angle, the ratio squared).
+3. **Lamps.** The frame's light against the twin's prediction under the lit lamps, exposure
+   and gain applied (the backdrop, lit by every lamp, is the main witness): the ratio says
+   what one lamp short would leave of it; ``lamp_out`` below ``out_factor``, ``lamp_dim``
+   below ``dim_factor``. Which lamp: the frame fitted as a non-negative mix of the twin
+   rendered under each lit lamp alone (``scipy.optimize.nnls``, pulled towards 1), the
+   factors per lamp name in the result. A frame with nothing like the mockup in view and
+   almost no light is ``lamp_out``, not ``wrong_mockup``.
 
 The twin's photometry is the simulator's (catalog reflectances, the sensor's QE and gain):
 exact on the simulated rig, an assumption a real rig would calibrate (white reference).
 
-Cost: about 15–40 ms per frame at 96 px (docs/benchmarks.md); :class:`SweepChecks` (the
+Cost: a median 39 ms per checked frame on a 2048² frame's cube (docs/benchmarks.md); :class:`SweepChecks` (the
 capture-time QC's companion, ``analysis.qc``) runs them on the first ``first_frames``
 frames after every change of lighting, tilt or mount and then on every ``every``-th
 frame, so the processing thread keeps up with 65 frames/s; a flag is raised once

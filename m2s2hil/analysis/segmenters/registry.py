@@ -10,7 +10,8 @@ A segmenter is any object with a ``name`` and ``segment(cube) -> labels``:
 Built-in names (``create_segmenter(name, **options)``):
 
 ========== ===============================================================
-spectral   ``SpectralSegmenter`` (default): Otsu foreground + GMM on unit spectra
+spectral   ``SpectralSegmenter`` (default): foreground + GMM on unit spectra, clipped and
+           near-black pixels out of the fit (``robust=False``: without that)
 rgb        ``RgbBaseline(SpectralSegmenter)``: the same on what an IR-cut RGB camera sees
            (CIE 1931 → linear sRGB, ``rgb.camera_rgb``)
 rgb-nir    the same on the paper's wavelength→RGB map with the near-infrared bands

@@ -10,6 +10,18 @@ materials", has the comparison that chose them):
    median + 6 robust SDs (``foreground_mask``) — with a bright object Otsu's cut can fall above a
    dark material and hand it to the background. ``"otsu"``: Otsu alone (the old rule). A cube
    with constant energy has no foreground and comes back all background.
+1b. Reliability (``robust=True``, default since issue 23; ``segmenters.normalise``): bands clipped
+   on more than 30 % of the foreground are left out of the features; pixels clipped in a used
+   band (a plateau at the band's maximum, or the processor's ``saturated`` mask given to
+   ``analyse``) and near-black pixels (energy < ``snr_min`` (10) × the backdrop's noise floor) are
+   *unreliable*: out of the fit and of model selection, then labelled — near-black pixels by the
+   mixture's posterior like any other, saturated ones by the nearest material mean in spectral
+   angle over the bands that did not clip (too few: the nearest reliable pixel's material);
+   ``SpectralSegmentation.unreliable`` says which. The homogeneity angle of step 3 becomes at
+   least 1.5 × the cube's median neighbour angle, so a dim cube keeps fit pixels (with a fixed 3°
+   none passed at 4 % peak and the fit fell back to every pixel, which over-splits). ``white``
+   (per band) divides the cube by the white reference first. ``robust=False``: the issue-15
+   segmenter, unchanged.
 2. Features: each spectrum divided by its norm (unit length: spectral angle, shape not
    brightness) or ``features="log-chromaticity"``; plus, with ``brightness_weight`` w > 0
    (default 0.1), w·log e as one more coordinate — an albedo cue: achromatic materials (silver,
@@ -41,7 +53,9 @@ BLAS threads: the whole analysis runs inside ``threadpoolctl.threadpool_limits(b
 is pure overhead; on a busy 2-core machine it made the BIC sweep ten times slower
 (1.65 s vs 0.17 s for six fits on 20k pixels). ``None`` leaves the library default.
 
-Known limits: the brightness coordinate separates dark grey from silver, but silver and cold
+Known limits (robustness: docs/evaluation.md, "Robustness to exposure, clipping and light"):
+below ~10 % peak and above ~150 % the multi-material builds lose materials (too little shape
+left); the brightness coordinate separates dark grey from silver, but silver and cold
 white (close in both shape and brightness) can still merge; materials that cover only a few
 pixels have no homogeneous interior and are found only if their spectra stand out. The
 defaults were chosen on the simulator's frames (docs/evaluation.md), not on real captures.

@@ -68,9 +68,9 @@ async def live_stream(
     notice part (a JPEG of the text, ``X-Live-Status``: ``{"state", "reason"}``, and the reason
     alone as ``X-Live-Error``): ``busy`` while a session owns the rig and ``error`` on a device
     error (about four a second, retried), ``waiting`` every 2 s without a frame (a cold start:
-    the stream waits for the camera, it does not time out). The stream's last part says why it
-    ended (``X-Live-End``: ``{"reason", "frames"}``). A viewer counts while its connection lasts;
-    beyond the daemon's limit, 503 with Retry-After."""
+    the stream waits for the camera; after 60 s with no frame and no reason it ends, saying so).
+    The stream's last part says why it ended (``X-Live-End``: ``{"reason", "frames"}``). A viewer
+    counts while its connection lasts; beyond the daemon's limit, 503 with Retry-After."""
     streams = streams_of(request)
     if not streams.live.acquire():
         return streams.busy(streams.live)
@@ -78,16 +78,21 @@ async def live_stream(
     async def parts() -> AsyncIterator[bytes]:
         frames = console.live.aframes(max_frames=max_frames)
         sent = 0
+        gave_up: str | None = None
         try:
             async for item in frames:
-                if isinstance(item, LiveNotice):
+                if isinstance(item, LiveNotice) and item.state == "ended":
+                    gave_up = item.reason
+                elif isinstance(item, LiveNotice):
                     yield _notice_part(item.state, item.reason)
                 else:
                     sent += 1
                     yield _frame_part(item)
         finally:
             await frames.aclose()  # the viewer leaves the count now, not when collected
-        if max_frames is not None and sent >= max_frames:
+        if gave_up is not None:
+            reason = gave_up
+        elif max_frames is not None and sent >= max_frames:
             reason = f"max_frames: the {sent} frame(s) asked for were sent"
         else:
             reason = console.live.stopped_reason or "the live view stopped"
