@@ -146,11 +146,13 @@ def chart(paths: list[Path], out: Path) -> None:
         colour = "tab:blue" if r["run"].startswith("stop") else (
             "tab:green" if "planned" in r["run"] else "tab:orange")
         ax.errorbar(r["sim_s"], y, yerr=[[y - lo], [0]], fmt="o", color=colour, capsize=3)
-        name = r["run"].split(":")[0].replace(" (before: no overlap)", ", before")
+        name = r["run"].split(" at r =")[0].replace(" (before: no overlap)", ", not overlapped")
         pe = r.get("pose") or {}
         if pe.get("max_error_deg") is not None and pe["max_error_deg"] == pe["max_error_deg"]:
             name += f"\npose err ≤ {pe['max_error_deg']:.3f}°"
-        ax.annotate(name, (r["sim_s"], y), textcoords="offset points", xytext=(6, -12), fontsize=7)
+        dy = -22 if "not overlapped" in name else -12
+        ax.annotate(name, (r["sim_s"], y), textcoords="offset points", xytext=(-60 if dy == -22 else 6, dy),
+                    fontsize=7)
     fl = rows[0]["physical_floor_s"]
     ax.axvline(fl, color="grey", ls="--", lw=1)
     ax.axvline(1.15 * fl, color="grey", ls=":", lw=1)

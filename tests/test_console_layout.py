@@ -222,3 +222,23 @@ def test_light_and_dark_follow_the_system_and_the_report_matches(console) -> Non
     assert seen["light"][0] == "rgb(243, 245, 247)" and seen["dark"][0] == "rgb(21, 24, 28)"
     report.close()
     page.emulate_media(color_scheme="dark")
+
+
+def test_long_actions_are_busy_and_cannot_be_doubled(console) -> None:
+    from playwright.sync_api import expect
+
+    d, page, _ = console
+    page.click("#tabs button[data-view='setup']")
+    before = len(d.client.get("/snapshots?limit=100").json()["items"])
+    # record the button's states as they happen (a snapshot may take less than a poll)
+    page.evaluate("""() => { window.seenBusy = [];
+      new MutationObserver(() => { const b = document.getElementById('snap');
+        window.seenBusy.push(b.classList.contains('busy') && b.disabled && b.ariaBusy === 'true'); })
+      .observe(document.getElementById('snap'), { attributes: true }); }""")
+    page.evaluate("() => { const b = document.getElementById('snap'); b.click(); b.click(); }")  # 2 clicks
+    expect(page.locator("#snap")).to_be_enabled(timeout=60000)
+    assert page.locator("#banner").is_hidden() or "snapshot" in page.inner_text("#banner-text"), \
+        page.inner_text("#banner-text")
+    expect(page.locator("#snapshots li")).to_have_count(before + 1)
+    assert page.evaluate("() => window.seenBusy.includes(true)")
+    assert len(d.client.get("/snapshots?limit=100").json()["items"]) == before + 1  # one, not two

@@ -71,7 +71,15 @@ def d(tmp_path_factory: pytest.TempPathFactory):
     sid, idx = write_session(root)
     with daemon(root, rig_config=small_rig_config(N)) as dd:
         dd.sid, dd.idx = sid, idx  # type: ignore[attr-defined]
+        quick_live_stop(dd.client)
         yield dd
+
+
+def quick_live_stop(client) -> None:
+    """The app's live view stops as soon as its last viewer leaves (not 2 s later: frames nobody
+    sees cost CPU the other tests pay for)."""
+    client.get("/camera/live")  # makes the app's console state
+    client.app.state.console.live.idle_stop_s = 0.0
 
 
 def test_stored_spectrum_is_the_dark_subtracted_band_means(d) -> None:
@@ -197,7 +205,12 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
         if shots:
             Path(shots).mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(Path(shots) / name), **kw)
-    with uvicorn_thread(create_app(d.manager)) as base, browser() as b:
+    import httpx
+
+    app = create_app(d.manager)
+    with uvicorn_thread(app) as base, browser() as b:
+        httpx.get(base + "/camera/live").raise_for_status()
+        app.state.console.live.idle_stop_s = 0.0
         page = b.new_page(viewport={"width": 1400, "height": 950}, bypass_csp=True)
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))

@@ -7,10 +7,13 @@ const state = { token: sessionStorage.getItem("m2s2hil-token"), live: null, watc
   browserId: null, catalog: null, axes: null, owner: null };
 
 // ------------------------------------------------------------------ HTTP
+const TAB_ID = sessionStorage.getItem("m2s2hil-tab") || "console-" + Math.random().toString(36).slice(2, 10);
+sessionStorage.setItem("m2s2hil-tab", TAB_ID);
 class ApiError extends Error { constructor(status, detail) { super(detail); this.status = status; } }
 
 function headers(json) {
-  const h = { "X-M2S2HIL": "1" };  // the daemon's cross-site guard (see docs/security.md)
+  // the daemon's cross-site guard (see docs/security.md); the tab's id for the activity log's "who"
+  const h = { "X-M2S2HIL": "1", "X-M2S2HIL-Client": TAB_ID };
   if (json) h["Content-Type"] = "application/json";
   if (state.token) h["Authorization"] = "Bearer " + state.token;
   return h;
@@ -60,6 +63,21 @@ $("banner-close").addEventListener("click", () => banner(""));
 function announce(text) { const a = $("announce"); a.textContent = ""; setTimeout(() => { a.textContent = text; }, 30); }
 
 function report(el, text, ok) { el.textContent = text; el.className = "result " + (ok ? "ok" : "bad"); }
+
+// A long action's button: disabled, with a spinner (class busy, aria-busy) until it ends; a click
+// or submit while it runs is ignored (no second export or snapshot on top of the first).
+function busyHandler(target, fn) {
+  const btn = target.tagName === "FORM" ? target.querySelector("button[type=submit]") : target;
+  return async (ev) => {
+    if (ev && ev.type === "submit") ev.preventDefault();
+    if (btn.classList.contains("busy")) return;
+    btn.classList.add("busy"); btn.disabled = true; btn.setAttribute("aria-busy", "true");
+    try { return await fn(ev); } finally {
+      btn.classList.remove("busy"); btn.removeAttribute("aria-busy");
+      btn.disabled = btn.classList.contains("manual") && Boolean(state.owner);
+    }
+  };
+}
 
 async function guarded(fn, el) {
   try { return await fn(); } catch (e) {
@@ -320,10 +338,10 @@ async function liveSettings() {
 for (const id of ["live-view", "live-exposure", "live-gain", "live-axis"]) $(id).addEventListener("change", liveSettings);
 
 // ------------------------------------------------------------------ snapshots
-$("snap").addEventListener("click", async () => {
+$("snap").addEventListener("click", busyHandler($("snap"), async () => {
   const r = await guarded(() => api("POST", "/snapshots", { note: $("snap-note").value }));
   if (r) { banner("snapshot " + r.id + " stored", "info"); loadSnapshots(); }
-});
+}));
 async function loadSnapshots() {
   const r = await guarded(() => api("GET", "/snapshots?limit=10"));
   if (!r) return;
@@ -495,17 +513,30 @@ $("b-report").addEventListener("click", async () => {
   if (!state.token) { window.open(path, "_blank", "noopener"); return; }
   const url = await guarded(() => blobUrl(path), $("b-result")); if (url) window.open(url, "_blank", "noopener");
 });
-$("b-verify").addEventListener("click", async () => {
+$("b-verify").addEventListener("click", busyHandler($("b-verify"), async () => {
   if (!state.browserId) return;
   report($("b-result"), "verifying…", true);
   const r = await guarded(() => api("GET", `/sessions/${state.browserId}/verify`), $("b-result"));
   if (r) report($("b-result"), r.ok ? `verified: ${r.frames} frames, every checksum matches` : "PROBLEMS:\n" + r.problems.join("\n"), r.ok);
-});
-$("b-export").addEventListener("click", async () => {
+}));
+// Export as a daemon job (POST …/export/jobs), followed until done; the result is a download (a zip).
+$("b-export").addEventListener("click", busyHandler($("b-export"), async () => {
   if (!state.browserId) return;
-  const r = await guarded(() => api("POST", `/sessions/${state.browserId}/export`, { layout: $("b-layout").value, overwrite: true }), $("b-result"));
-  if (r) report($("b-result"), `exported ${r.images} images (${r.files} files) to ${r.folder}`, true);
-});
+  const sid = state.browserId, layout = $("b-layout").value, out = $("b-result");
+  let job = await guarded(() => api("POST", `/sessions/${sid}/export/jobs`, { layout, overwrite: true }), out);
+  while (job && job.state === "running") {
+    report(out, `exporting ${layout}: ${job.phase} · ${fmtS(job.elapsed_s)}` + (job.frames ? ` · ${job.frames} frames` : ""), true);
+    await new Promise((ok) => setTimeout(ok, 1000));
+    job = await guarded(() => api("GET", `/exports/jobs/${job.job_id}`), out);
+  }
+  if (!job) return;
+  if (job.state !== "done") { report(out, `export failed: ${job.error ?? job.phase}`, false); announce("export failed"); return; }
+  const r = job.result || {};
+  report(out, `exported ${r.images} images (${r.files} files) in ${fmtS(job.elapsed_s)} to ${r.folder}`, true);
+  if (job.download_url && state.browserId === sid) {
+    out.append(document.createTextNode("\n"), button(`Download ${sid}-${layout}.zip`, () => download(job.download_url, `${sid}-${layout}.zip`)));
+  }
+}));
 
 // ------------------------------------------------------------------ calibration
 async function loadCalibration() {
@@ -516,12 +547,12 @@ async function loadCalibration() {
     (wr ? `white reference: ${wr.file}, captured ${wr.provenance?.captured_at ?? "?"} at ${fmtMs(wr.provenance?.exposure_s)}` : "no white reference") +
     `\ndarks in library: ${(r.darks || []).length}` + (r.named_in_rig_file ? "" : "\nthe rig file names no calibration file"), true);
 }
-$("darks-form").addEventListener("submit", async (ev) => {
+$("darks-form").addEventListener("submit", busyHandler($("darks-form"), async (ev) => {
   ev.preventDefault(); report($("d-result"), "taking darks…", true);
   const r = await guarded(() => api("POST", "/calibration/darks", { plan: sweepFromForm(), n_frames: Number($("d-frames").value), lens_capped: $("d-capped").checked }), $("d-result"));
   if (r) { report($("d-result"), r.darks.map((d) => `${fmtMs(d.exposure_s)} gain ${d.gain}: ${d.n_frames} frames, ${d.temperature_c.toFixed(1)} °C → ${d.file}`).join("\n"), true); loadCalibration(); }
-});
-$("white-form").addEventListener("submit", async (ev) => {
+}));
+$("white-form").addEventListener("submit", busyHandler($("white-form"), async (ev) => {
   ev.preventDefault(); report($("w-result"), "capturing…", true);
   const r = await guarded(() => api("POST", "/calibration/white", { exposure_s: Number($("w-exposure").value) / 1000, gain: Number($("w-gain").value),
     n_frames: Number($("w-frames").value), reflectance: Number($("w-refl").value), lighting: $("w-light").value, panel_in_place: $("w-panel").checked }), $("w-result"));
@@ -530,13 +561,13 @@ $("white-form").addEventListener("submit", async (ev) => {
     report($("w-result"), `written to ${r.file}\nsaturated ${(100 * c.saturated_fraction).toFixed(3)} % · level ${(100 * c.level_fraction).toFixed(0)} % of full scale · worst uniformity ${(100 * Math.min(...c.uniformity)).toFixed(0)} %` + (r.hint ? "\n" + r.hint : ""), true);
     loadCalibration();
   }
-});
-$("phase-form").addEventListener("submit", async (ev) => {
+}));
+$("phase-form").addEventListener("submit", busyHandler($("phase-form"), async (ev) => {
   ev.preventDefault();
   const r = await guarded(() => api("POST", "/calibration/phase", { exposure_s: Number($("p-exposure").value) / 1000 }), $("p-result"));
   // green only for a conclusive match: "inconclusive" is no confirmation
   if (r) report($("p-result"), `${r.message}\noffset (${r.offset.join(", ")}) · cost at origin ${(100 * r.cost_nominal).toFixed(2)} % · best ${(100 * r.cost_best).toFixed(2)} %`, r.conclusive && !r.suspect);
-});
+}));
 
 // ------------------------------------------------------------------ start
 let timers = [];

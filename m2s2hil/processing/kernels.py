@@ -207,10 +207,12 @@ def superpixel_rows(src, pr, pc, band_start, band_count, out, cy_lo, cy_hi):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy):
-    """The 4×4 case of one cell row: the n rows are split into one float32 plane per cell position
+    """The 4×4 case of one cell row: the n rows are split into one uint16 plane per cell position
     (a loop that reads all four phases of a cell vectorises; four loops with stride 4 do not:
-    1.3–1.6× slower in median), then each band is the mean of its planes, in the same order of
-    operations as the general path (identical results)."""
+    1.3–1.6× slower in median), then each band is the mean of its planes, converted to float32
+    as it is read and summed in the same order as the general path (identical results). uint16
+    planes rather than float32 ones: the split moves half the bytes and rows + planes (32 KB)
+    stay in L1 (≈ 20 % less time for split + means, docs/benchmarks.md)."""
     kw = rows.shape[1] // 4
     for py in range(4):
         c = rows[py]
@@ -219,30 +221,33 @@ def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy)
         q2 = planes[4 * py + 2]
         q3 = planes[4 * py + 3]
         for cx in range(kw):
-            q0[cx] = np.float32(c[4 * cx])
-            q1[cx] = np.float32(c[4 * cx + 1])
-            q2[cx] = np.float32(c[4 * cx + 2])
-            q3[cx] = np.float32(c[4 * cx + 3])
+            q0[cx] = c[4 * cx]
+            q1[cx] = c[4 * cx + 1]
+            q2[cx] = c[4 * cx + 2]
+            q3[cx] = c[4 * cx + 3]
     for b in range(band_start.shape[0]):
         s = band_start[b]
         cnt = band_count[b]
         o = out[b, cy]
         f = planes[4 * pr[s] + pc[s]]
+        if cnt == 1:
+            for cx in range(kw):
+                o[cx] = np.float32(f[cx])
+            continue
         if cnt == 2:
             g = planes[4 * pr[s + 1] + pc[s + 1]]
             for cx in range(kw):
-                o[cx] = (f[cx] + g[cx]) * np.float32(0.5)
+                o[cx] = (np.float32(f[cx]) + np.float32(g[cx])) * np.float32(0.5)
             continue
         for cx in range(kw):
-            o[cx] = f[cx]
-        if cnt > 1:
-            for p in range(s + 1, s + cnt):
-                g = planes[4 * pr[p] + pc[p]]
-                for cx in range(kw):
-                    o[cx] += g[cx]
-            inv = np.float32(1.0 / cnt)
+            o[cx] = np.float32(f[cx])
+        for p in range(s + 1, s + cnt):
+            g = planes[4 * pr[p] + pc[p]]
             for cx in range(kw):
-                o[cx] *= inv
+                o[cx] += np.float32(g[cx])
+        inv = np.float32(1.0 / cnt)
+        for cx in range(kw):
+            o[cx] *= inv
 
 
 @njit(cache=True, error_model="numpy")
@@ -251,12 +256,17 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
 
     Equals ``superpixel_rows(max(raw − dark, 0))`` (uint16, clipped at 0), with ``cell_sat[cy, cx]``
     True where a raw pixel of the cell is ≥ ``full_scale``. ``dark`` of shape (0, 0) means no dark.
-    Every ``qc_step``-th cell row of the corrected mosaic is copied into ``qc`` (rows, n, W) for the
+    Every ``qc_step``-th cell row of the corrected mosaic is written into ``qc`` (rows, n, W) for the
     QC checks that sample only those rows (none when ``qc`` has no rows). Returns the number of
     saturated raw pixels. Why one pass: the two-step chain wrote and re-read an 8 MB corrected
     mosaic and ran two thread pools; each cell row here is corrected into an L1-sized scratch and
     reduced from there, so memory sees each input once and each output once. Serial on purpose
     (see ``superpixel_rows``' caller).
+
+    The per-pixel loop stays in uint16 lanes (16 per AVX2 register): it keeps only the row's
+    maximum, and counts clipped pixels cell by cell in the rare rows whose maximum reaches full
+    scale. Counting ``a >= full_scale`` per pixel into an int64 widened every lane to 64 bits and
+    made that loop 2.6× slower. A kept QC row is corrected straight into ``qc`` (no copy).
     """
     h, w = raw.shape
     n_pos = pr.shape[0]
@@ -266,11 +276,15 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
     kw = w // n
     n_bands = band_start.shape[0]
     has_dark = dark.shape[0] == h
-    rows = np.empty((n, w), np.uint16)
-    planes = np.empty((n * n, kw), np.float32)
+    never = full_scale > 65535  # no uint16 value reaches it
+    fs = np.uint16(min(max(full_scale, 0), 65535))
+    scratch = np.empty((n, w), np.uint16)
+    planes = np.empty((n * n, kw), np.uint16)
     n_sat = 0
     for cy in range(h // n):
-        row_sat = 0
+        keep = qc.shape[0] > 0 and cy % qc_step == 0
+        rows = qc[cy // qc_step] if keep else scratch
+        mx = np.uint16(0)
         for py in range(n):
             r = raw[cy * n + py]
             c = rows[py]
@@ -278,29 +292,26 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
                 d = dark[cy * n + py]
                 for x in range(w):
                     a = r[x]
-                    b = d[x]
-                    c[x] = a - b if a > b else 0
-                    row_sat += a >= full_scale
+                    c[x] = a - min(a, d[x])
+                    mx = max(mx, a)
             else:
                 for x in range(w):
                     a = r[x]
                     c[x] = a
-                    row_sat += a >= full_scale
-        n_sat += row_sat
+                    mx = max(mx, a)
         flags = cell_sat[cy]
-        if row_sat == 0:
+        if never or mx < fs:
             for cx in range(kw):
                 flags[cx] = False
-        else:  # rare: find the clipped cells
+        else:  # rare: count and flag the clipped cells
             for cx in range(kw):
-                hit = False
+                hits = 0
                 for py in range(n):
                     cells = raw[cy * n + py, cx * n : (cx + 1) * n]
                     for j in range(n):
-                        hit |= cells[j] >= full_scale
-                flags[cx] = hit
-        if qc.shape[0] > 0 and cy % qc_step == 0:
-            qc[cy // qc_step] = rows
+                        hits += cells[j] >= full_scale
+                n_sat += hits
+                flags[cx] = hits > 0
         if n == 4:
             _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy)
             continue
