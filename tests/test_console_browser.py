@@ -11,7 +11,9 @@ from __future__ import annotations
 import os
 import re
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -44,98 +46,130 @@ def wait_for(pred, timeout: float = 60.0, what: str = "condition"):
         time.sleep(0.1)
 
 
-def test_console_end_to_end(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, str, Any]]:
+    """(daemon, base URL, playwright browser), one of each for the module's tests (a daemon and a
+    browser cost seconds of CPU each)."""
+    root = tmp_path_factory.mktemp("console")
+    with daemon(root / "data") as d, uvicorn_thread(create_app(d.manager)) as base, browser() as b:
+        yield d, base, b
+
+
+def test_console_end_to_end(served, tmp_path: Path) -> None:
     shots = shots_dir(tmp_path)
-    with daemon(tmp_path / "data") as d, uvicorn_thread(create_app(d.manager)) as base, browser() as b:
-        # bypass_csp: playwright's wait_for_function evaluates strings, which the console's CSP
-        # forbids (the token test below runs under the real policy)
-        page = b.new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(base + "/")
-        page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")
+    d, base, b = served
+    # bypass_csp: playwright's wait_for_function evaluates strings, which the console's CSP
+    # forbids (the token test below runs under the real policy)
+    page = b.new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(base + "/")
+    page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")
 
-        # live view: frames arrive and keep coming
-        page.fill("#live-exposure", "4")
-        page.dispatch_event("#live-exposure", "change")
-        page.click("#live-toggle")
-        page.wait_for_function("window.m2s2hilLive && window.m2s2hilLive.frames >= 3", timeout=30000)
-        first = page.evaluate("window.m2s2hilLive.seq")
-        page.wait_for_function(f"window.m2s2hilLive.seq > {first}", timeout=30000)
-        assert page.locator("#st-sat").inner_text().endswith("%")
-        # the canvases' text alternatives say what they show
-        assert re.match(r"live view, false colour: frame \d+ .* ms",
-                        page.get_attribute("#live-canvas", "aria-label"))
-        assert re.search(r"[\d.]+ % saturated, 99.9th percentile \d+ / \d+",
-                         page.get_attribute("#histogram", "aria-label"))
-        # the turntable-axis overlay follows the operator's setting (it travels with the frames)
-        page.fill("#live-axis", "0.4")
-        page.dispatch_event("#live-axis", "change")
-        # (read from the served app: each app keeps its own live view)
-        wait_for(lambda: httpx.get(base + "/camera/live").json()["settings"]["axis_x"] == 0.4,
-                 what="the axis setting")
+    # live view: frames arrive and keep coming
+    page.fill("#live-exposure", "4")
+    page.dispatch_event("#live-exposure", "change")
+    page.click("#live-toggle")
+    page.wait_for_function("window.m2s2hilLive && window.m2s2hilLive.frames >= 3", timeout=30000)
+    first = page.evaluate("window.m2s2hilLive.seq")
+    page.wait_for_function(f"window.m2s2hilLive.seq > {first}", timeout=30000)
+    assert page.locator("#st-sat").inner_text().endswith("%")
+    # the canvases' text alternatives say what they show
+    assert re.match(r"live view, false colour: frame \d+ .* ms",
+                    page.get_attribute("#live-canvas", "aria-label"))
+    assert re.search(r"[\d.]+ % saturated, 99.9th percentile \d+ / \d+",
+                     page.get_attribute("#histogram", "aria-label"))
+    # the turntable-axis overlay follows the operator's setting (it travels with the frames)
+    page.fill("#live-axis", "0.4")
+    page.dispatch_event("#live-axis", "change")
+    # (read from the served app: each app keeps its own live view)
+    wait_for(lambda: httpx.get(base + "/camera/live").json()["settings"]["axis_x"] == 0.4,
+             what="the axis setting")
 
-        # jog: the simulated stage moves (read back through GET /rig)
-        before = stage_deg(d, "turntable")
-        page.click("[data-jog='turntable:10']")
-        wait_for(lambda: abs(stage_deg(d, "turntable") - (before + 10)) < 0.1, what="the jog")
-        page.click("#presets button[data-preset='weak']")
-        wait_for(lambda: len(d.rig.lights.state()) == 3, what="the weak preset")
-        page.wait_for_function("document.querySelector('#presets button.on') !== null")
-        page.screenshot(path=str(shots / "console_setup.png"))
-        page.click("#live-toggle")  # stop the live view
+    # jog: the simulated stage moves (read back through GET /rig)
+    before = stage_deg(d, "turntable")
+    page.click("[data-jog='turntable:10']")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (before + 10)) < 0.1, what="the jog")
+    page.click("#presets button[data-preset='weak']")
+    wait_for(lambda: len(d.rig.lights.state()) == 3, what="the weak preset")
+    page.wait_for_function("document.querySelector('#presets button.on') !== null")
+    page.screenshot(path=str(shots / "console_setup.png"))
+    page.click("#live-toggle")  # stop the live view
 
-        # a session from the form: estimate, start, progress, contact sheet
-        start_session_from_form(page, tilts=("E1",), step_deg=90, frames=4)
-        page.wait_for_function("document.getElementById('run-state').textContent === 'completed'",
-                               timeout=60000)
-        page.wait_for_function("document.querySelectorAll('#run-sheet img[src^=\"blob:\"]').length === 4")
-        # the stored JPEG previews decode in the browser (not merely fetched)
-        page.wait_for_function("[...document.querySelectorAll('#run-sheet img')]"
-                               ".every((i) => i.complete && i.naturalWidth > 0)")
-        sid = page.inner_text("#run-id")
-        st = d.client.get(f"/sessions/{sid}").json()
-        assert st["done"] == st["total"] and st["skipped"] == 0
-        page.screenshot(path=str(shots / "console_sessions.png"))
+    # a session from the form: estimate, start, progress, contact sheet
+    start_session_from_form(page, tilts=("E1",), step_deg=90, frames=4)
+    page.wait_for_function("document.getElementById('run-state').textContent === 'completed'",
+                           timeout=60000)
+    page.wait_for_function("document.querySelectorAll('#run-sheet img[src^=\"blob:\"]').length === 4")
+    # the stored JPEG previews decode in the browser (not merely fetched)
+    page.wait_for_function("[...document.querySelectorAll('#run-sheet img')]"
+                           ".every((i) => i.complete && i.naturalWidth > 0)")
+    sid = page.inner_text("#run-id")
+    st = d.client.get(f"/sessions/{sid}").json()
+    assert st["done"] == st["total"] and st["skipped"] == 0
+    # the end is noticed: a toast (no notification permission here) and the tab's title
+    page.wait_for_function(f"document.querySelector('#toasts')?.textContent.includes('{sid} completed')")
+    assert page.title().startswith("✔ completed")
+    page.screenshot(path=str(shots / "console_sessions.png"))
+    # the fault count opens the log (the daemon's activity: this session's start at least); Esc
+    # closes it and does not stop the rig
+    page.click("#run-faults-open")
+    page.wait_for_function("document.getElementById('log-dialog').open && "
+                           "document.querySelectorAll('#log-list li').length > 0")
+    page.select_option("#log-kind", "")
+    page.wait_for_function("document.getElementById('log-list').textContent.includes('POST /sessions')")
+    page.screenshot(path=str(shots / "console_log.png"))
+    page.keyboard.press("Escape")
+    page.wait_for_function("!document.getElementById('log-dialog').open")
+    assert d.client.get("/queue").json()["held"] is None
 
-        # the session browser lists it; verify and the contact sheet work
-        page.click("#tabs button[data-view='browser']")
-        row = page.locator("#sessions-table tbody tr", has_text=sid)
-        row.click()
-        page.click("#b-verify")
-        page.wait_for_function("document.getElementById('b-result').textContent.startsWith('verified')")
-        page.wait_for_function("document.querySelectorAll('#b-sheet img[src^=\"blob:\"]').length === 4")
-        page.screenshot(path=str(shots / "console_browser.png"))
+    # the session browser lists it; verify and the contact sheet work
+    page.click("#tabs button[data-view='browser']")
+    row = page.locator("#sessions-table tbody tr", has_text=sid)
+    row.click()
+    page.click("#b-verify")
+    page.wait_for_function("document.getElementById('b-result').textContent.startsWith('verified')")
+    page.wait_for_function("document.querySelectorAll('#b-sheet img[src^=\"blob:\"]').length === 4")
+    # export as a job: the button is busy until it is done, then the zip is a download
+    page.click("#b-export")
+    page.wait_for_function("document.getElementById('b-result').textContent.startsWith('exported')",
+                           timeout=60000)
+    assert page.is_enabled("#b-export")
+    with page.expect_download() as dl:
+        page.click("#b-result button")
+    assert dl.value.suggested_filename == f"{sid}-m2s2.zip"
+    page.screenshot(path=str(shots / "console_browser.png"))
 
-        # emergency stop from the keyboard during a session
-        start_session_from_form(page, tilts=("E0", "E1", "E2"), step_deg=10)
-        page.wait_for_function("['running'].includes(document.getElementById('run-state').textContent)")
-        sid2 = page.inner_text("#run-id")
-        page.keyboard.press("Escape")
-        page.wait_for_function("document.getElementById('banner').textContent.includes('EMERGENCY STOP')")
-        st = d.wait_done(sid2)
-        assert st["state"] == "estopped" and st["done"] < st["total"]
-        assert d.rig.lights.state() == frozenset()
-        page.wait_for_function("document.getElementById('rig-status').textContent.startsWith('held')")
-        page.screenshot(path=str(shots / "console_estop.png"))
-        page.click("#queue-release")
-        page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")
+    # emergency stop from the keyboard during a session
+    start_session_from_form(page, tilts=("E0", "E1", "E2"), step_deg=10)
+    page.wait_for_function("['running'].includes(document.getElementById('run-state').textContent)")
+    sid2 = page.inner_text("#run-id")
+    page.keyboard.press("Escape")
+    page.wait_for_function("document.getElementById('banner').textContent.includes('EMERGENCY STOP')")
+    st = d.wait_done(sid2)
+    assert st["state"] == "estopped" and st["done"] < st["total"]
+    assert d.rig.lights.state() == frozenset()
+    page.wait_for_function("document.getElementById('rig-status').textContent.startsWith('held')")
+    page.screenshot(path=str(shots / "console_estop.png"))
+    page.click("#queue-release")
+    page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")
 
-        # calibration: a white reference written to the calibration file
-        page.click("#tabs button[data-view='calibration']")
-        page.select_option("#w-light", "strong")
-        page.fill("#w-exposure", "5")
-        page.fill("#w-frames", "4")
-        page.click("#white-form button[type=submit]")
-        page.wait_for_function("!['', 'capturing…'].includes($('w-result').textContent)",
-                               timeout=60000)
-        assert page.inner_text("#w-result").startswith("written to"), page.inner_text("#w-result")
-        cal = d.client.get("/calibration").json()
-        assert cal["exists"] and cal["white_reference"]["provenance"]["lighting"] == "strong"
-        page.click("#phase-form button[type=submit]")
-        page.wait_for_function("document.getElementById('p-result').textContent.length > 0")
-        page.screenshot(path=str(shots / "console_calibration.png"))
-        assert not errors, errors
+    # calibration: a white reference written to the calibration file
+    page.click("#tabs button[data-view='calibration']")
+    page.select_option("#w-light", "strong")
+    page.fill("#w-exposure", "5")
+    page.fill("#w-frames", "4")
+    page.click("#white-form button[type=submit]")
+    page.wait_for_function("!['', 'capturing…'].includes($('w-result').textContent)",
+                           timeout=60000)
+    assert page.inner_text("#w-result").startswith("written to"), page.inner_text("#w-result")
+    cal = d.client.get("/calibration").json()
+    assert cal["exists"] and cal["white_reference"]["provenance"]["lighting"] == "strong"
+    page.click("#phase-form button[type=submit]")
+    page.wait_for_function("document.getElementById('p-result').textContent.length > 0")
+    page.screenshot(path=str(shots / "console_calibration.png"))
+    page.close()  # (its polling would cost the next tests CPU)
+    assert not errors, errors
 
 
 def test_console_asks_for_the_token_and_uses_it(tmp_path: Path) -> None:
@@ -156,3 +190,213 @@ def test_console_asks_for_the_token_and_uses_it(tmp_path: Path) -> None:
         before = stage_deg(d, "tilt")
         page.click("[data-jog='tilt:1']")
         wait_for(lambda: abs(stage_deg(d, "tilt") - (before + 1)) < 0.1, what="the jog with a token")
+
+
+# ------------------------------------------------------------------ any screen, keys, names, themes
+SIZES = {"phone": (390, 844), "tablet": (768, 1024), "desktop": (1400, 1000)}
+VIEWS = ("setup", "sessions", "browser", "calibration")
+
+# Controls (visible or not) without an accessible name: aria-label, aria-labelledby, a <label>,
+# a button's text or a title. A placeholder is no label.
+UNNAMED_JS = """() => [...document.querySelectorAll('input, select, textarea, button')].filter((e) => {
+  const by = (e.getAttribute('aria-labelledby') || '').split(/\\s+/).filter(Boolean)
+    .map((i) => document.getElementById(i)?.textContent || '').join('');
+  const labels = [...(e.labels || [])].map((l) => l.textContent).join('');
+  const own = e.tagName === 'BUTTON' ? e.textContent : '';
+  return !((e.getAttribute('aria-label') || '') + by + labels + own + (e.title || '')).trim();
+}).map((e) => e.outerHTML.slice(0, 120))"""
+
+MEASURE_JS = """() => { window.scrollTo(0, document.documentElement.scrollHeight);
+  const r = document.getElementById('estop').getBoundingClientRect();
+  return { scroll: document.documentElement.scrollWidth, client: document.documentElement.clientWidth,
+           y: window.scrollY, top: r.top, bottom: r.bottom, left: r.left, right: r.right }; }"""
+
+
+@pytest.fixture(scope="module")
+def console(served) -> Iterator[tuple[Any, Any, list[str]]]:
+    """(daemon, page, errors): one page for the layout tests, under the page's real CSP (a page costs
+    CPU: the console polls); the list collects page errors and CSP violations. Desktop size."""
+    from playwright.sync_api import expect
+
+    d, base, b = served
+    page = b.new_page(viewport=dict(zip(("width", "height"), SIZES["desktop"], strict=True)))
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None)
+    page.goto(base + "/")
+    expect(page.locator("#rig-status")).to_contain_text("idle")
+    yield d, page, errors
+    page.close()
+    assert not errors, errors
+
+
+def resize(page: Any, size: str) -> tuple[int, int]:
+    w, h = SIZES[size]
+    page.set_viewport_size({"width": w, "height": h})
+    return w, h
+
+
+def test_every_view_fits_and_stop_stays_visible(console) -> None:
+    from playwright.sync_api import expect
+
+    _, page, _ = console
+    shots = os.environ.get("M2S2HIL_SCREENSHOTS")  # (screenshots cost CPU: only when asked)
+    for size in SIZES:
+        w, h = resize(page, size)
+        for view in VIEWS:
+            page.click(f"#tabs button[data-view='{view}']")
+            if view == "calibration":
+                expect(page.locator("#c-file")).not_to_be_empty()  # the long server paths are in
+            if view == "sessions":
+                expect(page.locator("#estimate")).to_contain_text("frames")
+            m = page.evaluate(MEASURE_JS)
+            assert m["scroll"] <= m["client"] == w, (size, view, m)
+            # STOP on screen after scrolling to the very bottom (a sticky header)
+            assert m["top"] >= 0 and m["bottom"] <= h and m["left"] >= 0 and m["right"] <= w, (size, view, m)
+            if shots and size != "desktop" and view in ("setup", "sessions"):
+                page.evaluate("() => window.scrollTo(0, 0)")
+                page.screenshot(path=str(Path(shots) / f"console_{size}_{view}.png"))
+    resize(page, "phone")  # scrolled down the setup view, STOP is still there
+    page.click("#tabs button[data-view='setup']")
+    page.evaluate("() => document.getElementById('lamps').scrollIntoView()")
+    assert page.evaluate("() => window.scrollY") > 200
+    expect(page.locator("#estop")).to_be_in_viewport()
+    if shots:
+        page.screenshot(path=str(Path(shots) / "console_phone_scrolled.png"))
+    page.evaluate("() => window.scrollTo(0, 0)")
+    resize(page, "desktop")
+
+
+def test_esc_stops_except_where_it_closes_and_release_is_beside_stop(console) -> None:
+    from playwright.sync_api import expect
+
+    d, page, _ = console
+    page.click("#tabs button[data-view='setup']")
+
+    def held() -> bool:
+        return d.client.get("/queue").json()["held"] is not None
+
+    def release() -> None:
+        page.click("#estop-release")
+        expect(page.locator("#estop-release")).to_be_hidden()
+        expect(page.locator("#banner")).to_be_hidden()
+        assert not held()
+
+    # Esc in a number field, a drop-down, or with the token dialog open: no stop
+    page.focus("#live-exposure")
+    page.keyboard.press("Escape")
+    page.focus("#live-view")
+    page.keyboard.press("Escape")
+    d.client.get("/queue")  # (the key presses' handlers have run: they are synchronous)
+    assert not held()
+    expect(page.locator("#estop-release")).to_be_hidden()
+
+    # Shift+Esc in the field stops; Release is focused next to STOP; the stop is announced
+    page.focus("#live-exposure")
+    page.keyboard.press("Shift+Escape")
+    expect(page.locator("#banner")).to_contain_text("EMERGENCY STOP")
+    expect(page.locator("#announce")).to_contain_text("EMERGENCY STOP")
+    expect(page.locator("#estop-release")).to_be_focused()
+    assert held()
+    stop, rel = page.locator("#estop").bounding_box(), page.locator("#estop-release").bounding_box()
+    assert abs(rel["y"] - stop["y"]) < stop["height"] and abs(rel["x"] - (stop["x"] + stop["width"])) < 40
+    release()
+
+    # Esc on a button (not a field) stops; F2 from a field stops
+    page.focus("#live-toggle")
+    page.keyboard.press("Escape")
+    expect(page.locator("#estop-release")).to_be_visible()
+    release()
+    page.focus("#snap-note")
+    page.keyboard.press("F2")
+    expect(page.locator("#estop-release")).to_be_visible()
+    release()
+
+    # an error banner: shown, announced, dismissed by its button
+    page.fill("[data-goto='tilt']", "999")
+    page.click("[data-goto='tilt'] ~ button")
+    expect(page.locator("#banner")).to_be_visible()
+    expect(page.locator("#announce")).not_to_be_empty()
+    page.click("#banner-close")
+    expect(page.locator("#banner")).to_be_hidden()
+
+
+def test_every_control_is_named_and_canvases_say_what_they_show(console) -> None:
+    from playwright.sync_api import expect
+
+    _, page, _ = console
+    resize(page, "phone")
+    expect(page.locator("#axes .axis")).to_have_count(2)  # the controls built from GET /rig/axes
+    expect(page.locator("#f-tilts input")).not_to_have_count(0)
+    assert page.evaluate(UNNAMED_JS) == []
+    for cv in page.query_selector_all("canvas"):
+        assert cv.get_attribute("role") == "img" and cv.get_attribute("aria-label"), cv.get_attribute("id")
+    # (what they say while the live view runs: tests/test_console_browser.py)
+
+
+
+
+def test_keyboard_jog_with_the_step_picker(console) -> None:
+    from playwright.sync_api import expect
+
+    d, page, _ = console
+    resize(page, "desktop")
+    page.click("#tabs button[data-view='setup']")
+    turn, tilt = stage_deg(d, "turntable"), stage_deg(d, "tilt")
+    page.locator("h2", has_text="Axes").click()  # focus on the view, not in a field
+    page.keyboard.press("3")
+    expect(page.locator("#jog-steps button[data-step='10']")).to_have_attribute("aria-pressed", "true")
+    page.keyboard.press("ArrowRight")
+    page.keyboard.press("]")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 20)) < 0.05, what="two 10° turntable jogs")
+    page.click("#jog-steps button[data-step='0.1']")  # the picker's buttons; the keys still jog
+    page.keyboard.press("ArrowUp")
+    wait_for(lambda: abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02, what="a 0.1° tilt jog")
+    # in a number field ↑ is the field's: no jog
+    page.focus("[data-goto='tilt']")
+    page.keyboard.press("ArrowUp")
+    page.click("#jog-steps button[data-step='1']")
+    page.keyboard.press("ArrowLeft")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 19)) < 0.05, what="a 1° turntable jog")
+    assert abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02
+
+
+def test_light_and_dark_follow_the_system_and_the_report_matches(console) -> None:
+    from m2s2hil.analysis.report.session_html import CSS
+
+    _, page, _ = console
+    colours = "() => [getComputedStyle(document.body).backgroundColor, getComputedStyle(document.body).color]"
+    report = page.context.browser.new_page()
+    report.set_content(f"<!doctype html><html><head><style>{CSS}</style></head><body>report</body></html>")
+    seen = {}
+    for scheme in ("light", "dark"):
+        page.emulate_media(color_scheme=scheme)
+        report.emulate_media(color_scheme=scheme)
+        seen[scheme] = page.evaluate(colours)
+        assert report.evaluate(colours) == seen[scheme], scheme  # the report in the console's colours
+        if os.environ.get("M2S2HIL_SCREENSHOTS"):
+            page.screenshot(path=str(Path(os.environ["M2S2HIL_SCREENSHOTS"]) / f"console_{scheme}.png"))
+    assert seen["light"] != seen["dark"]
+    assert seen["light"][0] == "rgb(243, 245, 247)" and seen["dark"][0] == "rgb(21, 24, 28)"
+    report.close()
+    page.emulate_media(color_scheme="dark")
+
+
+def test_long_actions_are_busy_and_cannot_be_doubled(console) -> None:
+    from playwright.sync_api import expect
+
+    d, page, _ = console
+    page.click("#tabs button[data-view='setup']")
+    before = len(d.client.get("/snapshots?limit=100").json()["items"])
+    # record the button's states as they happen (a snapshot may take less than a poll)
+    page.evaluate("""() => { window.seenBusy = [];
+      new MutationObserver(() => { const b = document.getElementById('snap');
+        window.seenBusy.push(b.classList.contains('busy') && b.disabled && b.ariaBusy === 'true'); })
+      .observe(document.getElementById('snap'), { attributes: true }); }""")
+    page.evaluate("() => { const b = document.getElementById('snap'); b.click(); b.click(); }")  # 2 clicks
+    expect(page.locator("#snap")).to_be_enabled(timeout=60000)
+    assert page.locator("#banner").is_hidden() or "snapshot" in page.inner_text("#banner-text"), \
+        page.inner_text("#banner-text")
+    expect(page.locator("#snapshots li")).to_have_count(before + 1)
+    assert page.evaluate("() => window.seenBusy.includes(true)")
+    assert len(d.client.get("/snapshots?limit=100").json()["items"]) == before + 1  # one, not two

@@ -391,17 +391,26 @@ def tent_filter_kernel(src, taps, n, out, nblocks):
 
 @njit(parallel=True, cache=True)
 def balance_kernel(src, gpos, out, nblocks):
-    """``out[y, x] = gpos[y % n, x % n] * src[y, x]`` as float32 (per-band gains of PPID)."""
+    """``out[y, x] = gpos[y % n, x % n] * src[y, x]`` as float32 (per-band gains of PPID).
+
+    The n gain rows are tiled once per block: an ``x % n`` per pixel (a runtime n, so an integer
+    division each) made this step 35 ms a frame, as long as the tent filter and WB together."""
     h, w = src.shape
     n = gpos.shape[0]
     for blk in prange(nblocks):
         y_lo = blk * h // nblocks
         y_hi = (blk + 1) * h // nblocks
-        row_gain = np.empty(w, np.float32)
+        gain_rows = np.empty((n, w), np.float32)
+        for py in range(n):
+            g = gpos[py]
+            gr = gain_rows[py]
+            for x0 in range(0, w - n + 1, n):
+                for j in range(n):
+                    gr[x0 + j] = g[j]
+            for x in range(w - w % n, w):
+                gr[x] = g[x - (w - w % n)]
         for y in range(y_lo, y_hi):
-            g = gpos[y % n]
-            for x in range(w):
-                row_gain[x] = g[x % n]
+            row_gain = gain_rows[y % n]
             s = src[y]
             o = out[y]
             for x in range(w):

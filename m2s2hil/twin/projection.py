@@ -65,7 +65,16 @@ class Placement:
 NOMINAL = Placement()
 
 
-def observed_mask(cube: np.ndarray, *, contrast: float = 0.12) -> np.ndarray:
+def backdrop_noise(cube: np.ndarray) -> tuple[float, float]:
+    """The backdrop's spectrum norm and its noise norm (``observed_mask``'s border statistics)."""
+    arr = np.asarray(cube, dtype=np.float32)
+    border = np.concatenate([arr[:, 0, :], arr[:, 1:, 0], arr[:, 1:, -1]], axis=1)
+    bg = np.median(border, axis=1)
+    sigma = 1.4826 * np.median(np.abs(border - bg[:, None]), axis=1)
+    return float(np.linalg.norm(bg)), float(np.linalg.norm(sigma))
+
+
+def observed_mask(cube: np.ndarray, *, contrast: float = 0.12, noise_norm: float | None = None) -> np.ndarray:
     """(H, W) bool foreground of a processed cube ``(bands, H, W)``: pixels whose spectrum
     differs from the backdrop's by more than ``contrast`` of its norm (or than its noise).
     The backdrop is
@@ -79,7 +88,9 @@ def observed_mask(cube: np.ndarray, *, contrast: float = 0.12) -> np.ndarray:
     # The backdrop's noise per band (MAD): a dim backdrop's distance is mostly noise, whose
     # norm over 10 bands is about sqrt(Σσ²) ± 0.7σ; 1.7·sqrt(Σσ²) keeps false pixels rare.
     sigma = 1.4826 * np.median(np.abs(border - bg[:, None]), axis=1)
-    threshold = max(contrast * float(np.linalg.norm(bg)), 1.7 * float(np.linalg.norm(sigma)))
+    # ``noise_norm``: a noise-free render (the twin's prediction of a frame) given the frame's noise.
+    noise = float(np.linalg.norm(sigma)) if noise_norm is None else float(noise_norm)
+    threshold = max(contrast * float(np.linalg.norm(bg)), 1.7 * noise)
     if not threshold > 0:
         return np.zeros(arr.shape[1:], dtype=bool)
     diff = arr - bg[:, None, None]
