@@ -217,7 +217,7 @@ class SimFrameSource:
                 bias = place.tilt_bias_deg if place else 0.0
                 offset = None
                 if place is not None and (place.offset_x_mm or place.offset_y_mm):
-                    offset = place.offset_units(self.scene.mount(sat, mats).radius)
+                    offset = place.offset_units(self.scene.mount(sat, mats, build).radius)
                 for i, p in enumerate(poses):
                     sub = self.scene.render(
                         sat, mats, p.azimuth_deg + yaw, p.tilt_deg + bias, lamps, w.lamp_info, spot,

@@ -394,7 +394,7 @@ def balance_kernel(src, gpos, out, nblocks):
     """``out[y, x] = gpos[y % n, x % n] * src[y, x]`` as float32 (per-band gains of PPID).
 
     The n gain rows are tiled once per block: an ``x % n`` per pixel (a runtime n, so an integer
-    division each) made this step 35 ms a frame, as long as the tent filter and WB together."""
+    division each) made this step 35 ms a frame, three times the tent filter (docs/benchmarks.md)."""
     h, w = src.shape
     n = gpos.shape[0]
     for blk in prange(nblocks):

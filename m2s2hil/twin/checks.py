@@ -53,7 +53,14 @@ import numpy as np
 from scipy.optimize import nnls
 
 from m2s2hil.simulators.scene import MountedScene
-from m2s2hil.twin.projection import NOMINAL, Placement, TwinCamera, coverage_of, observed_mask
+from m2s2hil.twin.projection import (
+    NOMINAL,
+    Placement,
+    TwinCamera,
+    backdrop_noise,
+    coverage_of,
+    observed_mask,
+)
 
 CHECKS_VERSION = 1
 FLAGS = ("off_axis", "yawed", "tilt_off", "tilt_drift", "wrong_mockup", "wrong_build", "lamp_out", "lamp_dim")
@@ -77,6 +84,7 @@ class CheckConfig:
     every: int = 8
     confirm: int = 2  # a flag is raised once this many checked frames of a lighting had it
     diameter_mm: float | None = None  # None: the twin's default (projection.DIAMETER_MM)
+    debias: bool = True  # align against the mask less the twin's predicted mask bias
 
     def __post_init__(self) -> None:
         checks = {
@@ -111,6 +119,7 @@ class Alignment:
     yaw_deg: float
     tilt_deg: float
     iou: float
+    info: np.ndarray | None = None  # (4, 4) information of (u, v, yaw, tilt), the grow term marginalised
 
 
 def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -139,6 +148,9 @@ class TwinChecks:
         self.config = cfg = config or CheckConfig()
         kw = {} if cfg.diameter_mm is None else {"diameter_mm": cfg.diameter_mm}
         self.twin = TwinCamera(model, cfg.size, **kw)
+        # The twin's own frame at twice the checks' size: which pixels a nominal frame's mask
+        # would hold (shadowed or dark parts the mask rule misses, edge pixels), to debias.
+        self.fine = TwinCamera(model, 2 * cfg.size, **kw)
         self.lamps = {lp.channel: lp for lp in lamps}
         self.spot_angle_deg = float(spot_angle_deg)
         from m2s2hil.simulators.sensor import Sensor
@@ -152,9 +164,11 @@ class TwinChecks:
 
     # -- geometry --------------------------------------------------------------------
     def align(self, m: MountedScene, az: float, tilt: float, obs: np.ndarray, prior: Placement = NOMINAL,
-              iterations: tuple[float, ...] = (2.0, 1.0)) -> Alignment:
-        """Image shift, yaw and tilt that align the twin (at ``prior``) with the mask coverage ``obs``."""
+              iterations: tuple[float, ...] = (2.0, 1.0), raw: np.ndarray | None = None) -> Alignment:
+        """Image shift, yaw and tilt that align the twin (at ``prior``) with the mask coverage ``obs``
+        (``raw``: the mask as seen, for the IoU, when ``obs`` is debiased)."""
         u = v = dyaw = dtilt = 0.0
+        info = None
         h_ang = 0.5
         for sigma in iterations:
             tgt = _blur(obs, sigma)
@@ -174,15 +188,29 @@ class TwinChecks:
             jtj = jac.T @ jac
             jtj += np.eye(5) * max(float(np.trace(jtj)), 1e-9) * 1e-6
             step = np.linalg.solve(jtj, -jac.T @ r)
+            info = jtj[:4, :4] - np.outer(jtj[:4, 4], jtj[4, :4]) / jtj[4, 4]
             step = np.clip(step, [-8, -8, -6, -6, -3], [8, 8, 6, 6, 3])
             u, v, dyaw, dtilt = u + step[0], v + step[1], dyaw + step[2], dtilt + step[3]
         p = Placement(prior.dx_mm, prior.dy_mm, prior.yaw_deg + dyaw, prior.tilt_bias_deg + dtilt,
                       prior.scale)
         final = _shift(self.twin.coverage(m, az, tilt, p), u, v) >= 0.5
-        seen = obs >= 0.5
+        seen = (obs if raw is None else raw) >= 0.5
         union = np.logical_or(final, seen).sum()
         iou = float(np.logical_and(final, seen).sum() / union) if union else 1.0
-        return Alignment(float(u), float(v), float(dyaw), float(dtilt), iou)
+        return Alignment(float(u), float(v), float(dyaw), float(dtilt), iou, info)
+
+    def predicted_coverage(self, m: MountedScene, az: float, tilt: float, lit: Sequence[int],
+                           exposure_s: float, gain: float, cube: np.ndarray) -> np.ndarray:
+        """The mask coverage a nominal frame would give (the twin's shaded frame at twice the
+        size, under the lit lamps, through the same mask rule with the frame's noise)."""
+        mf = self.fine.scene.mount(m.satellite, m.materials, m.build)
+        sh = self.fine.shaded(mf, az, tilt, NOMINAL, dict.fromkeys(lit, 1.0), self._lamp_info,
+                              self.spot_angle_deg, band_gain=self._sensor.band_gain)
+        pred = sh.cube(float(exposure_s) * self._sensor.dn_per_e(gain))
+        bg_obs, noise = backdrop_noise(cube)
+        bg_pred, _ = backdrop_noise(pred)
+        noise *= bg_pred / bg_obs if bg_obs > 0 else 1.0
+        return coverage_of(observed_mask(pred, noise_norm=noise), self.twin.shape)
 
     # -- the frame -------------------------------------------------------------------
     def check(self, cube: np.ndarray, satellite: str, build: str, azimuth_deg: float, tilt_deg: float,
@@ -204,7 +232,14 @@ class TwinChecks:
             out: dict[str, Any] = {"checks_version": CHECKS_VERSION}
             flags: list[str] = []
             seen = (obs >= 0.5).any()
-            al = self.align(m, azimuth_deg, tilt_deg, obs) if seen else Alignment(0, 0, 0, 0, 0.0)
+            lit = [ch for ch in lamps_on if ch in self.lamps]
+            target = obs
+            if seen and lit and exposure_s > 0 and cfg.debias:
+                # What the mask rule makes of a nominal frame, less the twin's silhouette: the
+                # estimator's own bias at this pose and lighting (shadowed parts missed, edges).
+                pred = self.predicted_coverage(m, azimuth_deg, tilt_deg, lit, exposure_s, gain, arr)
+                target = obs - (pred - self.twin.coverage(m, azimuth_deg, tilt_deg, NOMINAL))
+            al = self.align(m, azimuth_deg, tilt_deg, target, raw=obs) if seen else Alignment(0, 0, 0, 0, 0.0)
             if al.iou < cfg.min_iou:
                 # Nothing like the mockup in view: the light first (a dead lamp leaves the
                 # frame dark), else another satellite (or none) stands there.
