@@ -12,7 +12,9 @@ one-pass kernel) and against a plain numpy reshape-and-convert of the mosaic. ``
 threads copying 8 MB frames meanwhile (the pipeline's own capture and storage threads);
 ``--layer`` picks numba's threading layer (it must be chosen before numba loads, hence here).
 Figures: median over all frames and the best round's median; the machine is shared, so the load
-average is printed and the ratio against the same run's floor is the figure to compare.
+average is printed and the ratio against the same run's floor is the figure to compare. The last
+column pairs every frame with a 168 MB fill timed just before it (floor and step see the same
+load) and gives the median of those per-frame ratios: the figure the targets refer to.
 """
 
 from __future__ import annotations
@@ -32,6 +34,27 @@ def timed(fn, frames: int, rounds: int) -> tuple[float, float]:
 
     t = time_call(fn, frames=frames, rounds=rounds)
     return t.ms_median, t.ms_best
+
+
+def paired(fn, fill, frames: int, rounds: int) -> tuple[float, float, list[float], list[float]]:
+    """``fn`` and the floor's ``fill`` in turn, frame by frame: (median ms, best round median ms,
+    every ``fn`` time, every ``fill`` time, s). On a shared machine the load moves within seconds,
+    so a floor timed before the step says little about the step's own seconds; pairs do."""
+    fn()
+    fill()
+    medians, every, fills = [], [], []
+    for _ in range(rounds):
+        ts = []
+        for _ in range(frames):
+            t0 = time.perf_counter()
+            fill()
+            t1 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t1)
+            fills.append(t1 - t0)
+        medians.append(float(np.median(ts)) * 1e3)
+        every.extend(ts)
+    return float(np.median(every)) * 1e3, min(medians), every, fills
 
 
 def fill_bandwidth(frames: int, rounds: int) -> float:
@@ -102,16 +125,23 @@ def main(argv: list[str] | None = None) -> int:
         f"{numba.get_num_threads()} threads; busy threads {args.busy}."
     )
     print()
-    print("| step | median ms | best round ms | frames/s (median) | floor ms | × floor |")
-    print("|---|---|---|---|---|---|")
+    print("| step | median ms | best round ms | frames/s (median) | floor ms | × floor | × floor, paired |")
+    print("|---|---|---|---|---|---|---|")
     with Busy(args.busy):
         bw = fill_bandwidth(args.frames, args.rounds)
         in_bytes = raw.nbytes + dark.data.nbytes
+        cube = np.zeros((10, 2048, 2048), np.float32)
 
         def row(name: str, fn, out_bytes: int) -> None:
-            med, best = timed(fn, args.frames, args.rounds)
-            floor = (in_bytes + out_bytes) / bw / 1e6
-            print(f"| {name} | {med:.2f} | {best:.2f} | {1e3 / med:.0f} | {floor:.2f} | {med / floor:.2f} |")
+            med, best, ts, fills = paired(fn, lambda: cube.fill(1.0), args.frames, args.rounds)
+            need = in_bytes + out_bytes
+            floor = need / bw / 1e6
+            # each frame against the fill timed just before it: t / (bytes / that fill's bandwidth)
+            pair = float(np.median([t * cube.nbytes / (f * need) for t, f in zip(ts, fills, strict=True)]))
+            print(
+                f"| {name} | {med:.2f} | {best:.2f} | {1e3 / med:.0f} | {floor:.2f} | {med / floor:.2f} "
+                f"| {pair:.2f} |"
+            )
 
         if "superpixel" in procs:
             sp = SuperPixelDemosaicer(procs["superpixel"].layout, raw.shape)

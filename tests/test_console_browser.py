@@ -116,7 +116,7 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     page.click("#run-faults-open")
     page.wait_for_function("document.getElementById('log-dialog').open && "
                            "document.querySelectorAll('#log-list li').length > 0")
-    page.select_option("#log-kind", "")
+    page.uncheck("#log-session-only")  # everything: the operator actions too
     page.wait_for_function("document.getElementById('log-list').textContent.includes('POST /sessions')")
     page.screenshot(path=str(shots / "console_log.png"))
     page.keyboard.press("Escape")
@@ -172,9 +172,10 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     assert not errors, errors
 
 
-def test_console_asks_for_the_token_and_uses_it(tmp_path: Path) -> None:
+def test_console_asks_for_the_token_and_uses_it(served, tmp_path: Path) -> None:
+    b = served[2]  # the module's browser (one playwright at a time), a daemon of its own
     with daemon(tmp_path / "data", token=TOKEN) as d, \
-            uvicorn_thread(create_app(d.manager, token=TOKEN)) as base, browser() as b:
+            uvicorn_thread(create_app(d.manager, token=TOKEN)) as base:
         from playwright.sync_api import expect
 
         page = b.new_page()
