@@ -82,7 +82,10 @@ def measure(page, proc: psutil.Process, seconds: float, exposure_ms: float, base
             # what the stream asks of the camera, what the daemon produced, the first frame's wait
             "stream_fps": live.get("stream_fps"), "daemon_fps": live.get("fps"),
             "cold_start_s": live.get("cold_start_s"),
-            "render_ms": (live.get("stats") or {}).get("render_ms")}
+            # the last frame's: render, grab (exposure wait, readout, transfer, decode), time it waited
+            # in the camera's buffer (beyond the quickest frame), frames grabbed but never rendered
+            **{k: (live.get("stats") or {}).get(k) for k in ("render_ms", "grab_ms", "waited_ms", "dropped")},
+            "load_average": [round(x, 2) for x in os.getloadavg()]}
 
 
 def screenshots(page, base: str, out: Path) -> None:

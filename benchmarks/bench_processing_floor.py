@@ -14,7 +14,8 @@ threads copying 8 MB frames meanwhile (the pipeline's own capture and storage th
 Figures: median over all frames and the best round's median; the machine is shared, so the load
 average is printed and the ratio against the same run's floor is the figure to compare. The last
 column pairs every frame with a 168 MB fill timed just before it (floor and step see the same
-load) and gives the median of those per-frame ratios: the figure the targets refer to.
+load) and gives the median of those per-frame ratios: the figure the targets refer to. "× floor,
+CPU" is the same with process CPU time (all threads) instead of wall time.
 """
 
 from __future__ import annotations
@@ -36,25 +37,31 @@ def timed(fn, frames: int, rounds: int) -> tuple[float, float]:
     return t.ms_median, t.ms_best
 
 
-def paired(fn, fill, frames: int, rounds: int) -> tuple[float, float, list[float], list[float]]:
+def paired(fn, fill, frames: int, rounds: int) -> tuple[float, float, list[float], list[float], float]:
     """``fn`` and the floor's ``fill`` in turn, frame by frame: (median ms, best round median ms,
-    every ``fn`` time, every ``fill`` time, s). On a shared machine the load moves within seconds,
-    so a floor timed before the step says little about the step's own seconds; pairs do."""
+    every ``fn`` time, every ``fill`` time in s, ``fn``'s CPU seconds over ``fill``'s). On a shared
+    machine the load moves within seconds, so a floor timed before the step says little about the
+    step's own seconds; pairs do. The CPU ratio leaves out the time either spent descheduled."""
     fn()
     fill()
     medians, every, fills = [], [], []
+    cpu_fn = cpu_fill = 0.0
     for _ in range(rounds):
         ts = []
         for _ in range(frames):
+            c0 = time.process_time()
             t0 = time.perf_counter()
             fill()
             t1 = time.perf_counter()
+            c1 = time.process_time()
             fn()
             ts.append(time.perf_counter() - t1)
+            cpu_fn += time.process_time() - c1
+            cpu_fill += c1 - c0
             fills.append(t1 - t0)
         medians.append(float(np.median(ts)) * 1e3)
         every.extend(ts)
-    return float(np.median(every)) * 1e3, min(medians), every, fills
+    return float(np.median(every)) * 1e3, min(medians), every, fills, cpu_fn / max(cpu_fill, 1e-9)
 
 
 def fill_bandwidth(frames: int, rounds: int) -> float:
@@ -125,22 +132,25 @@ def main(argv: list[str] | None = None) -> int:
         f"{numba.get_num_threads()} threads; busy threads {args.busy}."
     )
     print()
-    print("| step | median ms | best round ms | frames/s (median) | floor ms | × floor | × floor, paired |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| step | median ms | best round ms | frames/s (median) | floor ms | × floor "
+        "| × floor, paired | × floor, CPU |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     with Busy(args.busy):
         bw = fill_bandwidth(args.frames, args.rounds)
         in_bytes = raw.nbytes + dark.data.nbytes
         cube = np.zeros((10, 2048, 2048), np.float32)
 
         def row(name: str, fn, out_bytes: int) -> None:
-            med, best, ts, fills = paired(fn, lambda: cube.fill(1.0), args.frames, args.rounds)
+            med, best, ts, fills, cpu = paired(fn, lambda: cube.fill(1.0), args.frames, args.rounds)
             need = in_bytes + out_bytes
             floor = need / bw / 1e6
             # each frame against the fill timed just before it: t / (bytes / that fill's bandwidth)
             pair = float(np.median([t * cube.nbytes / (f * need) for t, f in zip(ts, fills, strict=True)]))
             print(
                 f"| {name} | {med:.2f} | {best:.2f} | {1e3 / med:.0f} | {floor:.2f} | {med / floor:.2f} "
-                f"| {pair:.2f} |"
+                f"| {pair:.2f} | {cpu * cube.nbytes / need:.2f} |"
             )
 
         if "superpixel" in procs:

@@ -17,7 +17,36 @@ from typing import Any
 
 
 class Trapezoid:
-    """A 1-D move of ``length`` from speed ``v0`` to rest: accelerate, cruise, decelerate."""
+    """A 1-D move of ``length`` from speed ``v0`` to rest: accelerate, cruise, decelerate.
+
+    Both motion controllers the rig drives move this way, so the simulators time moves with
+    it and the plan's duration model (``m2s2hil.plan.estimate.move_time_s``) calls
+    :func:`rest_to_rest_s`, this profile's duration, rather than a formula of its own:
+
+    - GRBL 1.1h: a block's acceleration and nominal rate are ``$120..$122`` / ``$110..$112``
+      limited by every axis on the line (``limit_value_by_axis_maximum`` in
+      [src:planner.c ``plan_buffer_line``]); a block planned into an empty buffer enters at
+      rest and the last block of the buffer is planned to exit at rest
+      [src:planner.c ``planner_recalculate``]; the stepper's segment generator then runs
+      each block as a trapezoid (accelerate, cruise, decelerate) or, when the block is too
+      short to reach its nominal rate, a triangle [src:stepper.c ``st_prep_buffer``, ramp
+      types ``RAMP_ACCEL``/``RAMP_CRUISE``/``RAMP_DECEL``]. Jogs (``$J=``) go through the
+      same planner [GRBL v1.1 wiki "Grbl v1.1 Jogging"]. ([src:FILE]: gnea/grbl v1.1h.)
+    - Zaber ASCII: ``accel`` is "the acceleration and deceleration used when changing
+      speeds" and ``maxspeed`` the speed a ``move abs|rel`` travels at
+      [Zaber ASCII Protocol Manual, settings ``accel`` and ``maxspeed``,
+      https://www.zaber.com/protocol-manual#topic_setting_accel]: a trapezoid, a triangle for
+      a short move (the simulator uses the same ``accel`` for both; firmware 7's separate
+      ``motion.accelonly``/``motion.decelonly`` are not simulated).
+
+    What the simulation leaves out: GRBL's junction blending (``$11`` junction deviation)
+    between consecutive blocks; the engine sends one axis's block at a time and waits for
+    it, so a block always starts and ends at rest, except a turntable block queued right
+    behind a tilt block, whose 90° junction GRBL would cross at about
+    sqrt(a·$11·sin(θ/2)/(1 − sin(θ/2))) ≈ 1 unit/s (saving some 15 ms on this rig's
+    settings, a few times a build). GRBL's 100 Hz acceleration ticks
+    [src:config.h ``ACCELERATION_TICKS_PER_SECOND``] are integrated exactly here.
+    """
 
     def __init__(self, length: float, v_max: float, accel: float, v0: float = 0.0) -> None:
         if length < 0 or v_max <= 0 or accel <= 0 or v0 < 0:
@@ -85,6 +114,13 @@ class Trapezoid:
             return self.t1 + (s - self.d1) / self.vp
         rest = s - self.d1 - self.d2
         return self.t1 + self.t2 + _solve(-0.5 * self.a3, self.vp, -rest)
+
+
+def rest_to_rest_s(length: float, v_max: float, accel: float) -> float:
+    """Duration of a move of ``length`` from rest to rest at ``v_max`` and ``accel`` (see
+    :class:`Trapezoid`): ``length/v_max + v_max/accel`` when it reaches ``v_max``
+    (``length >= v_max²/accel``), else the triangle ``2·sqrt(length/accel)``."""
+    return Trapezoid(abs(length), v_max, accel).duration
 
 
 def _solve(a: float, b: float, c: float) -> float:

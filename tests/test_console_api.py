@@ -182,6 +182,131 @@ def test_live_view_waits_for_a_cold_camera_and_says_why_it_stopped() -> None:
     assert got[0].state == "waiting" and got[-1].state == "ended" and "gave up" in got[-1].reason
 
 
+def _frame(n: int, size: int = 64) -> Frame:
+    return Frame(np.full((size, size), 100 + n % 50, np.uint16), n, 0.0, 0.004, 1.0, "Mono10", 25.0)
+
+
+def _wait_until(cond, what: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.005)
+
+
+def test_live_view_grabs_while_it_renders_and_drops_stale_frames() -> None:
+    """The next grab runs while the last frame renders (two threads, one slot between them): with
+    the render held up, grabbing goes on; released, the viewer gets the newest frame, not a queue."""
+    model = small_rig_config(64).camera.model
+    grabbed = []
+
+    def grab(settings: LiveSettings) -> Frame:
+        grabbed.append(len(grabbed) + 1)
+        return _frame(len(grabbed))
+
+    live = LiveStream(model, grab, idle_stop_s=0.0, max_fps=500.0)
+    render, held, at_hold, rendered = live.renderer.render, threading.Event(), [], []
+
+    def slow_render(frame, settings, seq, grabbed_at=None):
+        rendered.append(frame.block_id)
+        if seq == 1:  # the first frame rendered is held up
+            at_hold.append(len(grabbed))
+            assert held.wait(30), "the test never released the render"
+        return render(frame, settings, seq, grabbed_at)
+
+    live.renderer.render = slow_render  # type: ignore[method-assign]
+
+    async def view() -> list:
+        got = []
+        async for item in live.aframes(max_frames=2, notice_s=0.05):
+            if isinstance(item, LiveFrame):
+                got.append(item)
+            elif not held.is_set():
+                await asyncio.to_thread(_wait_until, lambda: at_hold and len(grabbed) >= at_hold[0] + 3,
+                                        "no grab during the render")
+                held.set()
+        return got
+
+    first, second = asyncio.run(view())
+    # three grabbed while the first rendered: the next render is the newest, the ones between dropped
+    assert rendered[1] >= rendered[0] + 3 and second.stats["dropped"] >= 2
+    assert second.seq > first.seq and "grab_ms" in second.stats
+    _wait_until(lambda: not live.running, "the producer did not stop")
+    assert live.state == "idle"
+
+
+def test_live_view_ends_on_a_camera_that_only_fails_and_on_a_failed_render() -> None:
+    """No viewer waits for ever: a camera that only fails ends the stream after ``give_up_s`` with
+    the last error; a render that fails ends the producer, and the stream says why."""
+    from m2s2hil.drivers.errors import DeviceTimeout
+
+    model = small_rig_config(64).camera.model
+
+    def broken(settings: LiveSettings) -> Frame:
+        raise DeviceTimeout("no frame within 1 s (streaming)", device="camera")
+
+    failing = LiveStream(model, broken, idle_stop_s=0.0)
+
+    async def view(live: LiveStream, **kw) -> list:
+        return [item async for item in live.aframes(max_frames=1, notice_s=0.05, **kw)]
+
+    got = asyncio.run(view(failing, give_up_s=0.3))
+    assert got[0].state == "error" and "no frame within" in got[0].reason
+    end = got[-1]
+    assert end.state == "ended" and "only errors" in end.reason and "no frame within" in end.reason
+    live = LiveStream(model, lambda settings: _frame(1), idle_stop_s=0.0)
+
+    def bad_render(*args, **kw):
+        raise ValueError("the cube has no bands")
+
+    live.renderer.render = bad_render  # type: ignore[method-assign]
+    got = asyncio.run(view(live))
+    assert not any(isinstance(g, LiveFrame) for g in got)
+    _wait_until(lambda: not live.running, "the producer did not stop")
+    assert live.state == "error" and "the cube has no bands" in (live.stopped_reason or "")
+
+
+def test_live_stream_viewer_leaving_at_the_worst_moment_is_let_go(d) -> None:
+    """A client that goes while the stream waits for its first frame, or while a part is being sent
+    (its peer vanished mid-send): the request ends (no hang), the viewer leaves the count and the
+    stream slot is released; the live view still serves the next client."""
+    app = d.client.app
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "GET",
+             "scheme": "http", "path": "/camera/live.mjpeg", "raw_path": b"/camera/live.mjpeg",
+             "query_string": b"", "root_path": "", "client": ("127.0.0.1", 50000),
+             "server": ("127.0.0.1", 8750), "headers": [(b"host", b"127.0.0.1:8750"), (b"x-m2s2hil", b"1")]}
+
+    async def run(leave: str) -> list[dict]:
+        sent: list[dict] = []
+        gone = asyncio.Event()
+        asked = 0
+        if leave == "before the first frame":
+            gone.set()
+
+        async def receive() -> dict:
+            nonlocal asked
+            asked += 1
+            if asked == 1:
+                return {"type": "http.request", "body": b"", "more_body": False}
+            await gone.wait()
+            return {"type": "http.disconnect"}
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+            if message["type"] == "http.response.body" and b"X-Live-Stats" in message.get("body", b""):
+                gone.set()
+                await asyncio.sleep(30)  # the peer is gone mid-part: only the disconnect ends this
+
+        await asyncio.wait_for(app(scope, receive, send), 60)
+        return sent
+
+    for leave in ("before the first frame", "during a send"):
+        sent = asyncio.run(run(leave))
+        assert app.state.console.live.viewers == 0 and app.state.streams.live.count == 0, leave
+        if leave == "during a send":
+            assert any(b"X-Live-Stats" in m.get("body", b"") for m in sent)
+    assert len(mjpeg_frames(d.client.get("/camera/live.mjpeg", params={"max_frames": 1}).content)) == 1
+
+
 def test_live_view_longer_exposure_saturates_more(d) -> None:
     d.client.put("/rig/lamps", json={"preset": "strong"})
     fractions = []

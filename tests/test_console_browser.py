@@ -43,7 +43,7 @@ def wait_for(pred, timeout: float = 60.0, what: str = "condition"):
         if v:
             return v
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
+        time.sleep(0.2)  # (each look is a GET through the daemon: CPU)
 
 
 @pytest.fixture(scope="module")

@@ -33,3 +33,126 @@ def test_overlap_saves_the_readouts_and_keeps_every_frame_at_its_pose(tmp_path) 
         assert abs(f.meta["truth"]["azimuth_deg"] - f.meta["pose"]["turntable_deg"]) <= tol
     assert 0 < fin["physical_floor_s"] <= fin["lower_bound_s"] <= fin["duration_s"]
     assert fin["efficiency"] <= 1.0
+
+
+def _time_to_rest(ask_moving, clock, expect_s: float, step_s: float = 1e-3) -> float:
+    """Seconds from now until ``ask_moving()`` (a status over the wire) first says at rest; jumps to
+    20 ms before ``expect_s`` (still moving there, or the move ended early), then steps."""
+    t0 = clock.monotonic()
+    clock.advance(max(0.0, expect_s - 0.02))
+    assert ask_moving(), "the move ended early"
+    while ask_moving():
+        clock.advance(step_s)
+        assert clock.monotonic() - t0 < expect_s + 0.1, "the move ended late"
+    return clock.monotonic() - t0
+
+
+def _closed_form(d: float, v: float, a: float) -> float:
+    """Rest to rest at v and a: a triangle below v²/a, a trapezoid above (written out here,
+    independently of the code under test)."""
+    return 2 * (d / a) ** 0.5 if d < v * v / a else d / v + v / a
+
+
+@pytest.mark.parametrize("role,distance", [("turntable", 0.5), ("turntable", 10.0), ("tilt", 30.0)])
+def test_simulated_grbl_moves_take_the_plans_time(vclock, role, distance) -> None:
+    """Over the wire (a G0, then `?` every ms), a rest-to-rest move of the built-in rig's GRBL takes
+    what the plan's duration model says, triangle (0.5°) and trapezoid alike."""
+    from m2s2hil.protocols.grbl import GrblReceiver
+    from m2s2hil.simulators.grbl import grbl_sim_for
+
+    from m2s2hil.config import default_rig
+    from m2s2hil.plan.estimate import move_time_s
+
+    cfg = default_rig()
+    axes = {r: cfg.axes[r] for r in ("turntable", "tilt")}
+    sim = grbl_sim_for("stage", axes, vclock, None, None, {})
+    rx = GrblReceiver()
+    rx.feed(sim.take())
+    ax = cfg.axes[role]
+    sim.receive(f"G0 {ax.axis}{distance}\n".encode())
+
+    def moving() -> bool:
+        sim.receive(b"?")
+        (st,) = [e for e in rx.feed(sim.take()) if hasattr(e, "state")]
+        return st.state != "Idle"
+
+    expect = _closed_form(distance, ax.max_speed_dps, ax.accel_dps2)
+    took = _time_to_rest(moving, vclock, expect)
+    assert took == pytest.approx(expect, abs=2e-3)
+    assert took == pytest.approx(move_time_s(distance, ax), abs=2e-3)
+
+
+@pytest.mark.parametrize("distance", [0.5, 10.0])
+def test_simulated_zaber_moves_take_the_plans_time(vclock, distance) -> None:
+    """The same for a Zaber rotary axis driven by `move abs` in microsteps: the simulator's
+    `maxspeed`/`accel` come from the rig's axis (rounded to the protocol's data units)."""
+    from types import SimpleNamespace
+
+    from m2s2hil.protocols.zaber import Command, ZaberReceiver, encode_command
+    from m2s2hil.simulators.zaber import zaber_sim_for
+
+    from m2s2hil.config import AxisConfig
+    from m2s2hil.plan.estimate import move_time_s
+
+    ax = AxisConfig.model_validate(dict(device="stage", axis="1", units_per_degree=4266.6667, min_deg=-370,
+                                        max_deg=370, max_speed_dps=60.0, accel_dps2=120.0))
+    sim = zaber_sim_for("stage", SimpleNamespace(unit=1), {"turntable": ax}, vclock, None, None)
+    rx = ZaberReceiver()
+
+    def ask(text: str):
+        sim.receive(encode_command(Command(1, 1, None, text), with_checksum=False))
+        (reply,) = rx.feed(sim.take())
+        return reply
+
+    ask("home")  # it powers up on its home sensor: done at once
+    vclock.advance(0.01)
+    assert not ask("").busy
+    ask(f"move abs {round(distance * ax.units_per_degree)}")
+    expect = _closed_form(distance, 60.0, 120.0)
+    took = _time_to_rest(lambda: ask("").busy, vclock, expect)
+    assert took == pytest.approx(expect, abs=3e-3)
+    assert took == pytest.approx(move_time_s(distance, ax), abs=3e-3)
+
+
+def _quick_rig():
+    """The small rig with a brisk turntable and short warm-ups, so a real-time pass takes ~3 s."""
+    from engine_helpers import small_rig_config
+
+    cfg = small_rig_config()
+    axes = dict(cfg.axes)
+    axes["turntable"] = axes["turntable"].model_copy(update={"max_speed_dps": 180.0, "accel_dps2": 720.0})
+    lamps = {n: lamp.model_copy(update={"warmup_s": 0.2}) for n, lamp in cfg.lamps.items()}
+    return cfg.model_copy(update={"axes": axes, "lamps": lamps})
+
+
+@pytest.mark.slow  # ~3 s of wall time (mostly waiting on the real clock), ~1.5 s CPU
+@pytest.mark.timeout(300)
+def test_a_pass_over_ptys_in_real_time_takes_the_virtual_clocks_time(tmp_path) -> None:
+    """Four azimuths stop-and-go: on the virtual clock, then with the serial simulators served on
+    pseudo-terminals in real time (as `m2s2hil sim serve` does) and the drivers opening the ptys.
+    Generous (15 %) for a loaded machine; benchmarks/bench_rig_time_pty.py holds the 5 % figure."""
+    from engine_helpers import make_engine
+
+    from m2s2hil.config import load_rig
+    from m2s2hil.rig.factory import open_rig
+    from m2s2hil.rig.pty_serve import SimServer
+    from m2s2hil.store.session import SessionStore
+
+    cfg = _quick_rig()
+    sweep = small_sweep(dark={"frames": 1})
+    with session(tmp_path / "virtual", sweep, config=cfg) as s:
+        virtual = s.engine.run()
+    assert virtual.state is RunState.COMPLETED
+    with SimServer(cfg) as srv:
+        path = tmp_path / "served.toml"
+        path.write_text(srv.rig_toml())
+        rig = open_rig(load_rig(path))
+        try:
+            store = SessionStore.create(tmp_path / "real", sweep, rig.config, session_id="s1",
+                                        clock=rig.clock)
+            real = make_engine(rig, store, sweep).run()
+            store.close()
+        finally:
+            rig.close()
+    assert real.state is RunState.COMPLETED and real.done == virtual.done
+    assert real.elapsed_s == pytest.approx(virtual.elapsed_s, rel=0.15)

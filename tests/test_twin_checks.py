@@ -104,6 +104,36 @@ def test_checks_flag_what_the_rig_perturbs(checked: dict[str, list[str]]) -> Non
     assert "lamp_out" in checked["dead_lamp"]
 
 
+def test_the_mask_bias_of_a_shadowed_view_is_debiased_by_the_twin() -> None:
+    # Hubble in directional light at azimuth 0: its shadowed side is lost to the mask, so the
+    # raw alignment turns the silhouette (a 2 deg "yaw"); against the twin's own prediction of
+    # the mask, it does not.
+    rig = rig_with(256)
+    f = SimBench(rig).frame("hubble", "B2", "directional", 0.0, 0.0)
+    yaws, shifts = {}, {}
+    for debias in (False, True):
+        chk = sweep_checks(small_sweep(), rig, CheckConfig(debias=debias)).checks
+        res = chk.check(f.cube, "hubble", "B2", 0.0, 0.0, f.meta["lamps_on"], f.meta["exposure_s"])
+        yaws[debias], shifts[debias] = abs(res["yaw_deg"]), abs(res["shift_mm"][0])
+    assert yaws[True] < 0.6 < 1.5 < yaws[False]
+    assert shifts[True] < 0.5 < 0.7 < shifts[False]
+
+
+def test_the_joint_estimate_over_a_lighting_sees_an_offset_along_the_line_of_sight() -> None:
+    chk = sweep_checks(small_sweep(), rig_with(256), CheckConfig(size=32))
+    res = {"shift_mm": [0.0, 0.0]}
+    # 4 mm along the line of sight at azimuth 0: lateral shifts -4 sin(az) as the turntable turns.
+    along = [(az, -4.0 * np.sin(np.radians(az)), 0.2, 0.5) for az in (0.0, 10.0, 20.0)]
+    assert chk._joint_flags(along[:1], dict(res), None) is None  # one frame: no joint estimate
+    assert chk._joint_flags(along, res, None) == ["off_axis"]
+    assert res["joint"]["offset_mm"][1] == pytest.approx(4.0, abs=0.8)
+    # A yaw and a tilt seen in every frame, against one frame's odd estimate.
+    steady = [(az, 0.0, 2.0, 1.6) for az in (0.0, 10.0)]
+    assert chk._joint_flags(steady, dict(res), None) == ["yawed", "tilt_off"]
+    assert chk._joint_flags([(0.0, 0.0, 2.2, 1.5), (10.0, 0.0, 0.1, 0.3), (20.0, 0.0, 0.2, 0.4)],
+                            dict(res), None) == []
+
+
 def test_checks_run_on_the_first_frames_of_a_lighting_then_every_nth() -> None:
     chk = sweep_checks(small_sweep(), rig_with(256), CheckConfig(size=32, first_frames=2, every=3))
     due = [chk.due(("weak", "E1")) for _ in range(8)] + [chk.due(("strong", "E1")) for _ in range(3)]

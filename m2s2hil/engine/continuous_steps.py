@@ -30,7 +30,7 @@ from m2s2hil.config import RigConfig
 from m2s2hil.drivers.errors import FrameIncomplete
 from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.engine.exposure_search import ExposureResult
-from m2s2hil.engine.marks import Match, PassReport, blur_estimate, run_pass
+from m2s2hil.engine.marks import Match, PassReport, blur_estimate, run_pass, run_up_deg
 from m2s2hil.engine.messages import FrameCaptured, StepGen
 from m2s2hil.engine.steps import CaptureKit, SharedSteps
 from m2s2hil.errors import UsageError
@@ -122,19 +122,28 @@ class ContinuousSteps(SharedSteps):
         first = todo[0]
         assert first.tilt_deg is not None and first.lighting is not None
         cycles = kit.darks.lens_cycles
-        yield from kit.set_condition(first)
+        yield from kit.set_condition(first)  # the lamps' warm-up runs from here, under the moves
         moved: list[AxisRole] = ["tilt"] if self.ops.move("tilt", first.tilt_deg) else []
+        settle_until = clock.monotonic() + self.ops.settle_s(moved, first.settle_s)
         exposure, auto = self._exposure_for_pass(first)
-        dark = yield from kit.darks.for_setting(exposure, first.gain)
-        if kit.darks.lens_cycles != cycles:
-            return False
         speed = settings.omega(sweep, config, first.lighting, exposure)
-        kit.camera.configure(exposure, first.gain)
-        blur = blur_estimate(speed, exposure, settings.radius_px)
         marks: dict[float, list[CaptureEvent]] = {}
         for ev in todo:
             assert ev.azimuth_deg is not None
             marks.setdefault(ev.azimuth_deg, []).append(ev)
+        window = settings.match_window(sweep, config, speed, exposure)
+        start, lead_s = self._pass_start(list(marks), speed, window, exposure)
+        # Overlap: the turntable heads for the run-up's start while the tilt settles, the lamps
+        # warm and the darks are looked up (run_pass's own move to it then only verifies it).
+        # Not alongside the tilt move: on GRBL both axes share one planner, whose blocks run
+        # one after the other and whose status says Run until the last one ends [src:planner.c],
+        # so the tilt's arrival could not be watched while the turntable moved.
+        self.ops.start_move("turntable", start)
+        dark = yield from kit.darks.for_setting(exposure, first.gain)
+        if kit.darks.lens_cycles != cycles:
+            return False
+        kit.camera.configure(exposure, first.gain)
+        blur = blur_estimate(speed, exposure, settings.radius_px)
 
         def on_match(match: Match) -> Iterator[FrameCaptured]:
             evs = sorted(match.key, key=lambda e: e.frame)
@@ -157,11 +166,16 @@ class ContinuousSteps(SharedSteps):
         def on_frame(frame: Frame) -> dict[str, Any]:
             return {"clock_s": clock.monotonic(), "wall": clock.wall(), "truth": kit.frames.truth()}
 
-        self.ops.wait_ready(clock.monotonic() + self.ops.settle_s(moved, first.settle_s))
+        self.ops.move("turntable", start)  # verified; the run-up starts from rest here
+        # The run-up takes lead_s to the earliest frame a mark may take: the rotation may start
+        # that much before the tilt has settled and the lamps are warm, never a frame earlier.
+        wait = max(settle_until, self.ops.lamps_ready_at()) - lead_s - clock.monotonic()
+        if wait > 0:
+            clock.sleep(wait)
         report: PassReport = yield from run_pass(
             self.rig, self.ops, rotation, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
             exposure_s=exposure, k=sweep.frames_per_pose,
-            window_deg=settings.match_window(sweep, config, speed, exposure),
+            window_deg=window,
             on_match=on_match, on_frame=on_frame,
             frame_timeout_s=exposure + kit.camera.snap_timeout_s,
         )
@@ -180,6 +194,25 @@ class ContinuousSteps(SharedSteps):
                 device=self.rig.camera.name, command="continuous pass",
             )
         return True
+
+    def _pass_start(self, marks: list[float], speed: float, window_deg: float,
+                    exposure_s: float) -> tuple[float, float]:
+        """Where :func:`~m2s2hil.engine.marks.run_pass` starts the run-up to ``marks`` (as it
+        computes it) and how long the turntable then takes, from rest at ``accel_dps2``, to
+        the start of the earliest exposure that may be matched (mid-exposure at the first mark
+        less the window; one whole exposure earlier, to be safe)."""
+        ax = self.rig.config.axes["turntable"]
+        direction = -1 if len(marks) > 1 and marks[0] > marks[-1] else 1
+        first = min(marks) if direction > 0 else max(marks)
+        run_up = run_up_deg(speed, ax.accel_dps2)
+        start = min(ax.max_deg, max(ax.min_deg, first - direction * run_up))
+        ramp = speed * speed / (2 * ax.accel_dps2)  # covered while accelerating, in speed/accel s
+        reach = max(0.0, abs(first - start) - window_deg)
+        if reach <= ramp:
+            lead = math.sqrt(2 * reach / ax.accel_dps2)
+        else:
+            lead = speed / ax.accel_dps2 + (reach - ramp) / speed
+        return start, max(0.0, lead - exposure_s)
 
     def _exposure_for_pass(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
         exposure = self.kit.exposure

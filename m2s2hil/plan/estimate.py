@@ -19,6 +19,7 @@ from pydantic import Field
 from m2s2hil.config import AxisConfig, RigConfig
 from m2s2hil.errors import UsageError
 from m2s2hil.plan.model import CaptureEvent, PlanModel
+from m2s2hil.simulators.motion_kit import rest_to_rest_s
 
 if TYPE_CHECKING:
     from m2s2hil.plan.sweep import Sweep
@@ -34,14 +35,14 @@ def turntable_range(rig: RigConfig) -> tuple[float, float]:
 
 
 def move_time_s(distance_deg: float, axis: AxisConfig) -> float:
-    """Point-to-point time of a trapezoidal (or triangular) velocity profile."""
+    """Point-to-point time of a trapezoidal (or triangular) velocity profile: the very profile
+    the simulated GRBL and Zaber controllers move by, as the firmware and the vendor's
+    protocol manual document it (:func:`m2s2hil.simulators.motion_kit.rest_to_rest_s`, whose
+    docstring cites them), so the plan and the virtual clock cannot drift apart."""
     d = abs(distance_deg)
     if d <= 0:
         return 0.0
-    v, a = axis.max_speed_dps, axis.accel_dps2
-    if d < v * v / a:
-        return 2.0 * math.sqrt(d / a)
-    return d / v + v / a
+    return rest_to_rest_s(d, axis.max_speed_dps, axis.accel_dps2)
 
 
 def switch_warmup_s(rig: RigConfig, previous: str | None, new: str) -> float:

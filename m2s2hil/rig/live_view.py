@@ -7,26 +7,31 @@ exposure and focus by: a histogram of the raw values, the saturated fraction, a 
 (variance of the Laplacian of the brightest band, larger is sharper) and the frame's exposure,
 gain and timestamps.
 
-:class:`LiveStream` runs one producer thread while at least one viewer is connected, so any
-number of browsers share one camera conversation; each viewer gets the newest frame when it is
-ready for one (a slow viewer skips frames instead of queueing them). A viewer on an event loop
-(the daemon's) waits with :meth:`LiveStream.aframes`, which holds no thread while it waits: the
-producer wakes it through its loop. A viewer is never dropped for want of a frame while the
-producer runs (a cold start at 2048² — the camera starting, the first readout, the kernels
+:class:`LiveStream` runs one producer while at least one viewer is connected, so any number of
+browsers share one camera conversation: a grab thread and a render thread with a one-slot
+handoff between them, so the next exposure and readout overlap the last frame's render, and a
+frame the renderer had no time for is dropped, never queued. Each viewer gets the newest frame
+when it is ready for one (a slow viewer skips frames instead of queueing them). A viewer on an
+event loop (the daemon's) waits with :meth:`LiveStream.aframes`, which holds no thread while it
+waits: the producer wakes it through its loop. A viewer is never dropped for want of a frame while
+the producer runs (a cold start at 2048² — the camera starting, the first readout, the kernels
 compiling — may take longer than any fixed timeout on a loaded machine): it gets a
 :class:`LiveNotice` saying what the stream waits for instead, and :attr:`LiveStream.state` and
-:attr:`LiveStream.stopped_reason` say what the stream does and why it last stopped. Each grab goes through
-``grab`` (a callable the daemon wraps with its device lock and its session check), so the live
-view never talks to the camera while a session owns it.
+:attr:`LiveStream.stopped_reason` say what the stream does and why it last stopped; a viewer that
+gets neither a frame nor a busy notice for ``give_up_s`` (a stuck camera, or one that only fails)
+is ended with the reason, so no client waits for ever. Every wait here has a timeout. Each grab
+goes through ``grab`` (a callable the daemon wraps with its device lock and its session check), so
+the live view never talks to the camera while a session owns it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import threading
 import time
-from collections.abc import AsyncGenerator, Callable, Iterator
+from collections.abc import AsyncGenerator, Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -37,6 +42,8 @@ from m2s2hil.config import CameraModel
 from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.processing.demosaic import Demosaicer, get_demosaicer
 from m2s2hil.processing.display import SRGB_LUT, rgb_bands, srgb_encode
+
+log = logging.getLogger("m2s2hil.rig.live_view")
 
 HIST_BINS = 64
 JPEG_QUALITY = 80
@@ -212,6 +219,18 @@ class _Handoff:
         self.closed = False
         self.dropped = 0
         self.failure: BaseException | None = None
+        self._fastest: float | None = None  # the least (host arrival − device exposure start) seen
+
+    def waited(self, frame: Frame) -> float:
+        """How much longer than the quickest frame of this stream ``frame`` took from its exposure
+        start (device clock) to the host: time it waited in the camera's buffer because the host
+        read late (the two clocks' offset cancels out; it is 0 while the host keeps up)."""
+        if not (frame.host_time_s and frame.timestamp_s):
+            return 0.0
+        delay = frame.host_time_s - frame.timestamp_s
+        if self._fastest is None or delay < self._fastest:
+            self._fastest = delay
+        return delay - self._fastest
 
     def put(self, item: _Grabbed) -> None:
         with self._cond:
@@ -243,7 +262,7 @@ class LiveViewBusy(RuntimeError):
 
 
 class LiveStream:
-    """One producer thread shared by every viewer (see the module docstring).
+    """One producer (a grab and a render thread) shared by every viewer (see the module docstring).
 
     ``grab(settings)`` snaps one frame (the caller's locking and ownership checks inside);
     it raises :class:`LiveViewBusy` when the camera is not available.
@@ -345,7 +364,9 @@ class LiveStream:
                 self.state = "error"
                 self.stopped_reason = f"the live view failed: {type(exc).__name__}: {exc}"
                 self._notify()
-            raise
+            if not isinstance(exc, Exception):
+                raise
+            log.exception("the live view failed")  # the viewers have the reason; the log has the trace
 
     def _produce(self) -> None:
         """Grab here, render on a second thread: the next exposure and readout overlap the last
@@ -425,6 +446,7 @@ class LiveStream:
                 live = self.renderer.render(item.frame, item.settings, seq, item.grabbed_at)
                 live.stats["grab_ms"] = round(item.grab_ms, 2)
                 live.stats["dropped"] = handoff.dropped  # frames grabbed but superseded before rendering
+                live.stats["waited_ms"] = round(1e3 * handoff.waited(item.frame), 2)
                 with self._cond:
                     if item.generation != self._generation or handoff.closed:
                         continue
@@ -437,44 +459,8 @@ class LiveStream:
                     self.state = "streaming"
                     self._frame_times = [*self._frame_times[-19:], now]
                     self._notify()
-        except BaseException as exc:
+        except BaseException as exc:  # the grab loop raises it, and the producer ends with its reason
             handoff.failure = exc
-            raise
-
-    def frames(self, *, max_frames: int | None = None, timeout_s: float = 10.0) -> Iterator[LiveFrame | str]:
-        """Newest frames for one viewer, each at most once; a string when the camera is unavailable
-        (the reason). Ends after ``max_frames`` frames or ``timeout_s`` without a new one."""
-        with self._cond:
-            self._viewers += 1
-            self._ensure_running()
-        last = self._latest.seq if self._latest is not None else 0
-        sent = 0
-
-        def ready(after: int) -> bool:
-            return (self._latest is not None and self._latest.seq > after) or self._error is not None
-
-        try:
-            while max_frames is None or sent < max_frames:
-                with self._cond:
-                    ok = self._cond.wait_for(lambda after=last: ready(after), timeout=timeout_s)
-                    if not ok:
-                        return
-                    if self._latest is not None and self._latest.seq > last:
-                        item: LiveFrame | str = self._latest
-                        last = self._latest.seq
-                    else:
-                        item = self._error or "unavailable"
-                        self._error = None
-                if isinstance(item, str):
-                    yield item
-                    time.sleep(0.25)
-                    continue
-                sent += 1
-                yield item
-        finally:
-            with self._cond:
-                self._viewers -= 1
-                self._last_viewer = time.monotonic()
 
     async def aframes(self, *, max_frames: int | None = None, notice_s: float = WAIT_NOTICE_S,
                       give_up_s: float = GIVE_UP_S) -> AsyncGenerator[LiveFrame | LiveNotice, None]:
@@ -482,8 +468,9 @@ class LiveStream:
         thread. Instead of a frame: a :class:`LiveNotice` when the camera is unavailable (``busy``,
         ``error``), and one every ``notice_s`` without a frame (``waiting``: starting, or slow).
         Ends after ``max_frames`` frames, when the producer has stopped for good
-        (:attr:`stopped_reason`), or after ``give_up_s`` without a frame or a reason for its absence
-        (a last notice, state ``ended``, says so). The viewer counts from its first step until the
+        (:attr:`stopped_reason`), or after ``give_up_s`` without a frame and without a busy notice
+        (nothing, or only device errors: a last notice, state ``ended``, says so), so no viewer
+        waits for ever. The viewer counts from its first step until the
         generator is closed (the daemon closes it when the connection goes)."""
         waiter = (asyncio.get_running_loop(), asyncio.Event())
         with self._cond:
@@ -492,7 +479,8 @@ class LiveStream:
             self._ensure_running()
             last = self._latest.seq if self._latest is not None else 0
         sent = 0
-        progress_at = time.monotonic()  # the last frame, or the last word on why there is none
+        progress_at = time.monotonic()  # the last frame, or the last busy notice
+        last_error: str | None = None  # the last device error since then
         try:
             while max_frames is None or sent < max_frames:
                 with self._cond:
@@ -512,12 +500,17 @@ class LiveStream:
                         await asyncio.wait_for(waiter[1].wait(), notice_s)
                     except TimeoutError:
                         if time.monotonic() - progress_at > give_up_s:
-                            yield LiveNotice("ended", f"no frame from the camera for {give_up_s:g} s: the "
-                                             "live view gave up (the camera may be stuck); start it again")
+                            yield self._give_up(give_up_s, last_error)
                             return
                         yield LiveNotice("waiting", self._waiting_for())
                     continue
-                progress_at = time.monotonic()
+                if isinstance(item, LiveFrame) or item.state == "busy":
+                    progress_at = time.monotonic()
+                else:
+                    last_error = item.reason
+                    if time.monotonic() - progress_at > give_up_s:  # only errors: the camera never recovers
+                        yield self._give_up(give_up_s, last_error)
+                        return
                 yield item
                 if isinstance(item, LiveNotice):
                     await asyncio.sleep(0.25)
@@ -528,6 +521,14 @@ class LiveStream:
                 self._viewers -= 1
                 self._waiters.discard(waiter)
                 self._last_viewer = time.monotonic()
+
+    @staticmethod
+    def _give_up(give_up_s: float, last_error: str | None) -> LiveNotice:
+        if last_error is not None:
+            return LiveNotice("ended", f"no frame from the camera for {give_up_s:g} s, only errors (the "
+                              f"last: {last_error}): the live view gave up; start it again")
+        return LiveNotice("ended", f"no frame from the camera for {give_up_s:g} s: the live view gave up "
+                          "(the camera may be stuck); start it again")
 
     def _waiting_for(self) -> str:
         since = time.monotonic() - self._started_at

@@ -63,6 +63,7 @@ from m2s2hil.twin.projection import (
 )
 
 CHECKS_VERSION = 1
+_GEOMETRY = ("off_axis", "yawed", "tilt_off", "tilt_drift")
 FLAGS = ("off_axis", "yawed", "tilt_off", "tilt_drift", "wrong_mockup", "wrong_build", "lamp_out", "lamp_dim")
 
 
@@ -85,6 +86,14 @@ class CheckConfig:
     confirm: int = 2  # a flag is raised once this many checked frames of a lighting had it
     diameter_mm: float | None = None  # None: the twin's default (projection.DIAMETER_MM)
     debias: bool = True  # align against the mask less the twin's predicted mask bias
+    # The joint fit over a lighting's checked frames (SweepChecks): its tolerances, set from
+    # the nominal distribution of the fitted placement (docs/benchmarks.md), and its effort.
+    joint: bool = True
+    joint_shift_mm: float = 3.0
+    joint_yaw_deg: float = 1.35
+    joint_tilt_deg: float = 1.0
+    joint_noise_mm: float = 0.2  # one frame's lateral shift noise (nominal spread, docs/benchmarks.md)
+    joint_prior_mm: float = 3.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -215,8 +224,11 @@ class TwinChecks:
     # -- the frame -------------------------------------------------------------------
     def check(self, cube: np.ndarray, satellite: str, build: str, azimuth_deg: float, tilt_deg: float,
               lamps_on: Sequence[int], exposure_s: float, gain: float = 1.0,
-              registered: Placement | None = None, saturated: np.ndarray | None = None) -> dict[str, Any]:
-        """Flags and measurements of one frame (a dict for ``meta["qc"]["twin"]``)."""
+              registered: Placement | None = None, saturated: np.ndarray | None = None,
+              keep: list[Any] | None = None) -> dict[str, Any]:
+        """Flags and measurements of one frame (a dict for ``meta["qc"]["twin"]``); ``keep``: a
+        list the frame's estimates are appended to, ``(azimuth, lateral shift mm, yaw, tilt)``,
+        for the joint estimate over a lighting's frames (``SweepChecks``)."""
         t0 = time.perf_counter()
         cfg = self.config
         with self._lock:
@@ -252,9 +264,14 @@ class TwinChecks:
                 return out
             mm = 1.0 / self.twin.px_per_mm()
             shift_mm = math.hypot(al.u_px, al.v_px) * mm
+            if al.info is not None:  # marginal precision of yaw and tilt (1 / their variance ∝)
+                cov = np.linalg.pinv(al.info)
+                out["precision"] = [round(1.0 / max(float(cov[k, k]), 1e-12), 3) for k in (2, 3)]
             out.update(shift_mm=[round(al.u_px * mm, 3), round(al.v_px * mm, 3)],
                        yaw_deg=round(al.yaw_deg, 3),
                        tilt_deg=round(al.tilt_deg, 3), iou=round(al.iou, 4))
+            if keep is not None:
+                keep.append((float(azimuth_deg), al.u_px * mm, al.yaw_deg, al.tilt_deg))
             if shift_mm > cfg.shift_mm:
                 flags.append("off_axis")
             if abs(al.yaw_deg) > cfg.yaw_deg:
@@ -388,12 +405,14 @@ class SweepChecks:
     _key: Any = None
     _count: int = 0
     _seen: dict[str, int] = field(default_factory=dict)  # flag -> checked frames of this key with it
+    _frames: list[Any] = field(default_factory=list)  # this key's checked frames (Observation)
+    _joint: Any = None  # the Registrar of the joint fit, made on first use
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def due(self, key: Any) -> bool:
         with self._lock:
             if key != self._key:
-                self._key, self._count, self._seen = key, 0, {}
+                self._key, self._count, self._seen, self._frames = key, 0, {}, []
             self._count += 1
             n, cfg = self._count, self.checks.config
             return n <= cfg.first_frames or (n - cfg.first_frames) % cfg.every == 0
@@ -413,9 +432,12 @@ class SweepChecks:
 
             r = self.registration.add(Observation.from_cube(self.satellite, self.build, az, tilt, cube, 96))
             reg = r.placement if r is not None else None
+        with self._lock:
+            frames = self._frames
         res = self.checks.check(cube, self.satellite, self.build, float(az), float(tilt),
                                 list(meta.get("lamps_on") or []), float(meta.get("exposure_s") or 0.0),
-                                float(meta.get("gain") or 1.0), registered=reg, saturated=saturated)
+                                float(meta.get("gain") or 1.0), registered=reg, saturated=saturated,
+                                keep=frames)
         if self.registration is not None and self.registration.current is not None:
             res["registration"] = self.registration.current.as_dict()
         # One frame's flag may be noise (a shadow, a symmetric pose); what the next checked
@@ -424,8 +446,46 @@ class SweepChecks:
             for f in res["flags"]:
                 self._seen[f] = self._seen.get(f, 0) + 1
             confirmed = [f for f in res["flags"] if self._seen[f] >= self.checks.config.confirm]
+        joint = self._joint_flags(frames, res, reg)
+        if joint is not None:  # the joint fit decides the geometry; one frame's estimate does not
+            confirmed = [f for f in confirmed if f not in _GEOMETRY] + joint
         res["frame_flags"], res["flags"] = res["flags"], confirmed
         return res
+
+    def _joint_flags(self, frames: list[Any], res: dict[str, Any], reg: Placement | None) -> list[str] | None:
+        """Geometry flags from the estimates of all this lighting's checked frames together
+        (None: fewer than two, or this frame was not aligned).
+
+        Yaw and tilt: the mean over the frames (one view's estimate carries the pose's own
+        bias, docs/twin.md; the mean narrows its spread). The offset: the lateral shifts
+        fitted as ``u_i = dx cos(az_i) − dy sin(az_i)`` (an orthographic view, the turntable
+        turning the offset), ridge-pulled to 0 with a prior of ``joint_prior_mm``, so an offset
+        along the line of sight at the first azimuth shows as the turntable turns; or, as one
+        frame sees it, a lateral shift over ``shift_mm`` in two frames."""
+        cfg = self.checks.config
+        if not cfg.joint or len(frames) < 2 or "shift_mm" not in res:
+            return None
+        az = np.radians([f[0] for f in frames])
+        a = np.column_stack([np.cos(az), -np.sin(az)])
+        u = np.array([f[1] for f in frames])
+        lam = (cfg.joint_noise_mm / cfg.joint_prior_mm) ** 2
+        dx, dy = (float(x) for x in np.linalg.solve(a.T @ a + lam * np.eye(2), a.T @ u))
+        yaw = float(np.mean([f[2] for f in frames]))
+        tilt = float(np.mean([f[3] for f in frames]))
+        res["joint"] = {"frames": len(frames), "offset_mm": [round(dx, 3), round(dy, 3)],
+                        "yaw_deg": round(yaw, 3), "tilt_deg": round(tilt, 3)}
+        flags = []
+        with self._lock:
+            shifted = self._seen.get("off_axis", 0) >= cfg.confirm
+        if math.hypot(dx, dy) > cfg.joint_shift_mm or shifted:
+            flags.append("off_axis")
+        if abs(yaw) > cfg.joint_yaw_deg:
+            flags.append("yawed")
+        if reg is None and abs(tilt) > cfg.joint_tilt_deg:
+            flags.append("tilt_off")
+        if reg is not None and abs(tilt - reg.tilt_bias_deg) > cfg.joint_tilt_deg:
+            flags.append("tilt_drift")
+        return flags
 
     def labels(self, meta: Mapping[str, Any], shape: tuple[int, ...]) -> Any:
         """The frame's projected labels (``twin.labels.ProjectedLabels``) at ``shape`` (the

@@ -68,7 +68,8 @@ async def live_stream(
     notice part (a JPEG of the text, ``X-Live-Status``: ``{"state", "reason"}``, and the reason
     alone as ``X-Live-Error``): ``busy`` while a session owns the rig and ``error`` on a device
     error (about four a second, retried), ``waiting`` every 2 s without a frame (a cold start:
-    the stream waits for the camera; after 60 s with no frame and no reason it ends, saying so).
+    the stream waits for the camera; after 60 s with neither a frame nor a busy notice, nothing or
+    only errors, it ends, saying so).
     The stream's last part says why it ended (``X-Live-End``: ``{"reason", "frames"}``). A viewer
     counts while its connection lasts; beyond the daemon's limit, 503 with Retry-After."""
     streams = streams_of(request)

@@ -52,7 +52,13 @@ class LiveCamera:
                 if not self.streaming:
                     rig.camera.start_stream(fps=self.stream_fps(settings))
                     self.streaming = True
-                return rig.camera.read_frame(timeout=settings.exposure_s + rig.config.camera.timeout_s)
+                try:
+                    return rig.camera.read_frame(timeout=settings.exposure_s + rig.config.camera.timeout_s)
+                except DeviceError:
+                    # a stalled stream stays stalled (the driver: it needs a restart): the next grab
+                    # starts it afresh instead of timing out for ever
+                    self.streaming = False
+                    raise
         except Conflict as exc:
             raise LiveViewBusy(str(exc)) from None
 
