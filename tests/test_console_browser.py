@@ -347,9 +347,12 @@ def test_keyboard_jog_with_the_step_picker(console) -> None:
     page.locator("h2", has_text="Axes").click()  # focus on the view, not in a field
     page.keyboard.press("3")
     expect(page.locator("#jog-steps button[data-step='10']")).to_have_attribute("aria-pressed", "true")
+    page.keyboard.press("2")  # (1°: the simulated turntable takes its time over 10°)
+    expect(page.locator("#jog-steps button[data-step='1']")).to_have_attribute("aria-pressed", "true")
+    expect(page.locator("#jog-steps button[data-step='10']")).to_have_attribute("aria-pressed", "false")
     page.keyboard.press("ArrowRight")
     page.keyboard.press("]")
-    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 20)) < 0.05, what="two 10° turntable jogs")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 2)) < 0.05, what="two 1° turntable jogs")
     page.click("#jog-steps button[data-step='0.1']")  # the picker's buttons; the keys still jog
     page.keyboard.press("ArrowUp")
     wait_for(lambda: abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02, what="a 0.1° tilt jog")
@@ -358,7 +361,7 @@ def test_keyboard_jog_with_the_step_picker(console) -> None:
     page.keyboard.press("ArrowUp")
     page.click("#jog-steps button[data-step='1']")
     page.keyboard.press("ArrowLeft")
-    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 19)) < 0.05, what="a 1° turntable jog")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 1)) < 0.05, what="a 1° turntable jog back")
     assert abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02
 
 
