@@ -5,8 +5,11 @@
 matrix   perturbation × magnitude × satellite × lighting. A cell is the first three frames of
          a lighting (azimuths 0, 10, 20 deg at E1, as a sweep takes them) on the simulated rig
          set up wrong by the rig file's ``[simulation]`` section, checked as the capture QC
-         checks them (``SweepChecks``: a flag is raised once two frames had it); it is
-         *detected* when any of the three carries the perturbation's flag. Perturbations: off the axis along x
+         checks them (``SweepChecks``: geometry flags from the joint estimate over the
+         lighting's checked frames, from the second; other flags once two frames had them);
+         it is *detected* when any of the three carries the perturbation's flag (and, for a
+         misplacement, ``any_geometry_flag`` when it carries any misplacement flag).
+         Perturbations: off the axis along x
          (across the view at azimuth 0) and along y (along the line of sight at azimuth 0) by
          1, 2, 4 mm; yaw at azimuth 0 by 2, 4 deg; a tilt bias of 1, 2 deg; the wrong build
          on the turntable; a dead lamp (the second lamp of the lighting); a lamp at half output.

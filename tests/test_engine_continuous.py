@@ -100,3 +100,40 @@ def test_a_lost_stream_frame_at_a_mark_is_retried(tmp_path) -> None:
         assert redone and redone[0].action == "retry"
         assert len(passes) == 2 and passes[1]["missing_marks"] == []
         assert len({f.event_id for f in s.store.frames()}) == 4
+
+
+@pytest.mark.slow  # ~2 s
+def test_the_run_up_overlaps_the_lamps_warm_up_but_no_frame_is_taken_before_it(tmp_path) -> None:
+    """The turntable repositions and starts its run-up while the lamps warm (3 s here, longer than
+    the tilt move), timed so that the first frame's exposure starts once they are warm."""
+    from engine_helpers import small_rig_config
+
+    cfg = small_rig_config()
+    warm = 3.0
+    cfg = cfg.model_copy(update={"lamps": {n: lamp.model_copy(update={"warmup_s": warm})
+                                           for n, lamp in cfg.lamps.items()}})
+    sweep = small_sweep(mode="continuous", azimuth_step_deg=90, dark={"frames": 1})
+    with session(tmp_path, sweep, config=cfg, speed_dps=SPEED) as s:
+        clock, seen = s.rig.clock, {"lit": [], "rotate": []}
+        lights_set, rotate = s.rig.lights.set, s.rig.rotation.rotate
+
+        def set_spy(channels, *a, **kw):
+            out = lights_set(channels, *a, **kw)
+            if channels:
+                seen["lit"].append(clock.monotonic())  # verified on: the warm-up counts from here
+            return out
+
+        def rotate_spy(*a, **kw):
+            seen["rotate"].append(clock.monotonic())
+            return rotate(*a, **kw)
+
+        s.rig.lights.set, s.rig.rotation.rotate = set_spy, rotate_spy
+        st = s.engine.run()
+        assert st.state is S.COMPLETED and st.done == st.total
+        ready = seen["lit"][0] + warm
+        assert seen["rotate"][0] < ready - 0.05  # the run-up began while the lamps warmed
+        readout = 1 / s.rig.config.camera.model.max_fps
+        first = min(f.meta["clock_s"] - f.meta["exposure_s"] - readout for f in s.store.frames())
+        assert first >= ready - 1e-6  # ... and no kept frame was exposed before they were warm
+        (fin,) = [e["payload"] for e in s.store.events() if e["kind"] == "run_finished"]
+        assert fin["lower_bound_s"] <= fin["duration_s"]

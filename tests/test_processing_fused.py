@@ -150,3 +150,21 @@ def test_process_raw_equals_two_step_for_other_layouts(pattern):
     np.testing.assert_array_equal(cells, cell_mask(sat, n))
     np.testing.assert_array_equal(qc, corrected.reshape(12, n, shape[1])[::8])
     assert n_sat == int(sat.sum()) > 0
+
+
+@pytest.mark.parametrize("full_scale", [0, 1, 65535, 65536])
+def test_process_raw_counts_saturation_at_the_uint16_edges(full_scale):
+    # the kernel tests a row's uint16 maximum first: full scales at or beyond the uint16 range
+    # must still count exactly the raw pixels >= full_scale
+    rng = np.random.default_rng(full_scale)
+    raw = rng.integers(0, 1024, (48, 64), dtype=np.uint16)
+    raw[5, 7] = 65535
+    dark = rng.integers(0, 50, raw.shape, dtype=np.uint16)
+    sp = SuperPixelDemosaicer(LAYOUT, raw.shape)
+    cells = np.empty(sp.out_shape[1:], bool)
+    cube, n_sat = sp.process_raw(raw, dark, full_scale, cells)
+    sat = raw.astype(np.int64) >= full_scale
+    assert n_sat == int(sat.sum())
+    np.testing.assert_array_equal(cells, cell_mask(sat, LAYOUT.n))
+    corrected, _ = subtract_dark(raw, dark, full_scale=FS)
+    np.testing.assert_array_equal(cube, SuperPixelDemosaicer(LAYOUT, raw.shape).process(corrected))

@@ -62,3 +62,30 @@ def test_the_capture_qc_stores_projected_labels_once_registered() -> None:
             meta = out["projected_labels"]
             assert meta["source"] == "twin" and 0 < meta["confidence"] <= 1
     assert stored == [False, False, True, True]
+
+
+def test_hil_frames_are_scored_against_the_projected_labels_and_table2_shows_them() -> None:
+    from m2s2hil.analysis.evaluation.evaluate import _segmenter_result
+    from m2s2hil.analysis.evaluation.jobs import FrameJob
+    from m2s2hil.analysis.evaluation.options import EvalOptions
+    from m2s2hil.analysis.evaluation.table2 import build_rows, to_csv, to_markdown
+
+    # A 10-band cube of two filaments on a backdrop; no truth (a HIL frame), projected labels.
+    rng = np.random.default_rng(0)
+    lab = np.zeros((32, 32), np.uint8)
+    lab[6:26, 4:15], lab[6:26, 17:28] = 1, 2
+    spectra = np.array([np.full(10, 0.2), np.linspace(0.9, 0.3, 10), np.linspace(0.2, 0.8, 10)])
+    cube = (spectra[lab].transpose(2, 0, 1) + rng.normal(0, 0.01, (10, 32, 32))).astype(np.float32)
+    job = FrameJob("s1/f1", "s1", "hubble", "B1", 3, "E1", "weak", 0.0, {}, "superpixel")
+    opts = EvalOptions(mtc_for="none")
+    right = _segmenter_result("spectral", cube, None, job, opts, (), lab)
+    wrong = _segmenter_result("spectral", cube, None, job, opts, (), np.roll(lab, 8, axis=1))
+    assert "precision" not in right and right["hil_dice"] > 0.9 > 0.8 > wrong["hil_dice"]
+    recs = [{"satellite": "hubble", "build": "B1", "elevation": "E1", "lighting": "weak", "classes": 3,
+             "has_truth": False, "error": None, "results": {"spectral": r, "rgb-kmeans": {}}}
+            for r in (right, wrong)]
+    (row,) = build_rows(recs, multi="spectral", rgb="rgb-kmeans")
+    assert row.hil["dice"] == (pytest.approx((right["hil_dice"] + wrong["hil_dice"]) / 2), 2)
+    md = to_markdown([row])
+    assert "HIL Dice" in md.splitlines()[0] and "projected labels" in md
+    assert "hil_recall_n" in to_csv([row]).splitlines()[0]

@@ -102,6 +102,7 @@ for (const b of document.querySelectorAll("#tabs button")) {
 function showView(name) {
   for (const b of document.querySelectorAll("#tabs button")) b.classList.toggle("active", b.dataset.view === name);
   for (const v of document.querySelectorAll(".view")) v.classList.toggle("active", v.id === "view-" + name);
+  if (name === "setup") refreshAxes();
   if (name === "browser") loadSessions();
   if (name === "calibration") loadCalibration();
 }
@@ -151,6 +152,8 @@ function el(tag, text, cls) { const e = document.createElement(tag); if (text !=
 function button(text, onClick, cls) { const b = el("button", text, cls); b.type = "button"; b.addEventListener("click", onClick); return b; }
 
 async function refreshAxes() {
+  // only while they can be seen: an idle console on another view (or tab) costs the daemon nothing
+  if ($("axes").dataset.built && (document.hidden || !$("view-setup").classList.contains("active"))) return;
   const a = await guarded(() => api("GET", "/rig/axes"));
   if (!a) return;
   state.axes = a; state.owner = a.owner;

@@ -20,7 +20,7 @@ azimuth step).
 from __future__ import annotations
 
 import math
-from collections.abc import Hashable, Iterator, Sequence
+from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +28,7 @@ import numpy as np
 
 from m2s2hil.config import RigConfig
 from m2s2hil.drivers.errors import FrameIncomplete
-from m2s2hil.drivers.interfaces import Frame
+from m2s2hil.drivers.interfaces import ContinuousRotation, Frame
 from m2s2hil.engine.exposure_search import ExposureResult
 from m2s2hil.engine.marks import Match, PassReport, blur_estimate, run_pass, run_up_deg
 from m2s2hil.engine.messages import FrameCaptured, StepGen
@@ -72,6 +72,20 @@ class SpeedSettings:
         return min(sweep.azimuth_step_deg / 2, max(0.1, 1.5 * speed * period))
 
 
+class _TimedRotation:
+    """The turntable's rotation, noting when it was started (for the next pass's timing)."""
+
+    def __init__(self, rotation: ContinuousRotation, now: Callable[[], float], called_s: float) -> None:
+        self._rotation, self._now = rotation, now
+        self.called_s = called_s
+        self.started_s: float | None = None
+
+    def rotate(self, speed_dps: float, direction: int = +1) -> None:
+        self._rotation.rotate(speed_dps, direction=direction)
+        if self.started_s is None:
+            self.started_s = self._now()
+
+
 class ContinuousSteps(SharedSteps):
     """:class:`~m2s2hil.engine.steps.CaptureSteps` for ``mode = "continuous"``: a unit is what
     is still to do of one pass. Keeps the pass reports and the per-frame blur for the summary."""
@@ -81,6 +95,7 @@ class ContinuousSteps(SharedSteps):
         self.settings = settings
         self.blur_deg: list[float] = []  # per stored frame
         self.passes: list[dict[str, Any]] = []  # per pass: its report
+        self._startup_s: float | None = None  # least time from run_pass's call to the rotation
 
     def setup(self) -> None:
         if self.rig.rotation is None:
@@ -169,16 +184,24 @@ class ContinuousSteps(SharedSteps):
         self.ops.move("turntable", start)  # verified; the run-up starts from rest here
         # The run-up takes lead_s to the earliest frame a mark may take: the rotation may start
         # that much before the tilt has settled and the lamps are warm, never a frame earlier.
+        # run_pass starts the camera's stream before the rotation (0.3 s on the simulated
+        # TOUCAN): that too runs under the wait, by the least start-up seen so far (none yet on
+        # the first pass), 80 % of it, so a faster start can only make the first frame later.
+        lead_s += 0.8 * self._startup_s if self._startup_s is not None else 0.0
         wait = max(settle_until, self.ops.lamps_ready_at()) - lead_s - clock.monotonic()
         if wait > 0:
             clock.sleep(wait)
+        timed = _TimedRotation(rotation, clock.monotonic, clock.monotonic())
         report: PassReport = yield from run_pass(
-            self.rig, self.ops, rotation, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
+            self.rig, self.ops, timed, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
             exposure_s=exposure, k=sweep.frames_per_pose,
             window_deg=window,
             on_match=on_match, on_frame=on_frame,
             frame_timeout_s=exposure + kit.camera.snap_timeout_s,
         )
+        if timed.started_s is not None:
+            got = timed.started_s - timed.called_s
+            self._startup_s = got if self._startup_s is None else min(self._startup_s, got)
         info = {"pass_index": first.pass_index, "lighting": first.lighting, "elevation": first.elevation,
                 "exposure_s": exposure, **report.to_dict(), **blur.to_dict()}
         self.passes.append(info)

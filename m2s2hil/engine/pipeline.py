@@ -27,9 +27,20 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from m2s2hil.protocols.errors import M2S2Error
+
 log = logging.getLogger(__name__)
 
 _STOP = object()
+
+
+def _log_failure(name: str, stage: str, key: Any, exc: BaseException) -> None:
+    """A device or store error is the fault policy's (debug); anything else is a bug, e.g. a race
+    between threads, whose traceback the fault's one-line message would lose: logged whole."""
+    if isinstance(exc, (M2S2Error, OSError)):
+        log.debug("%s: %s failed for %r: %s", name, stage, key, exc)
+    else:
+        log.error("%s: %s failed for %r", name, stage, key, exc_info=exc)
 
 
 class PipelineClosed(RuntimeError):
@@ -207,7 +218,7 @@ class Pipeline:
             try:
                 processed = self._process(key, payload)
             except BaseException as exc:  # reported to the engine, never dropped
-                log.debug("%s: process failed for %r: %s", self.name, key, exc)
+                _log_failure(self.name, "process", key, exc)
                 self._finish(Outcome(key, ok=False, error=exc, stage="process"))
                 continue
             finally:
@@ -232,7 +243,7 @@ class Pipeline:
             try:
                 result = self._store(key, processed)
             except BaseException as exc:
-                log.debug("%s: store failed for %r: %s", self.name, key, exc)
+                _log_failure(self.name, "store", key, exc)
                 outcome = Outcome(key, ok=False, error=exc, stage="store")
             else:
                 outcome = Outcome(key, ok=True, result=result)

@@ -5,7 +5,8 @@ Stop-and-go (:func:`estimate`): a trapezoidal velocity profile per axis
 exposure + readout (1/max_fps) per frame, lamp warm-up per switch (only lamps that
 were off need to warm up), dark frames. The lower bound keeps only physics: both axes
 moving together, lamps warming while the stage moves, no settling. Continuous rotation
-(:func:`estimate_continuous`): one constant-ω sweep per pass, with its run-up and run-down.
+(:func:`estimate_continuous`): one constant-ω sweep per pass, with its run-up and run-down;
+the tilt's settling and the lamps' warm-up overlap the turntable's repositioning and run-up.
 """
 
 from __future__ import annotations
@@ -216,14 +217,19 @@ def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
         t_tl = move_time_s(evs[0].tilt_deg - pos_tl, tl)
         warm = switch_warmup_s(rig, light, c) if c != light else 0.0
         light = c
-        moved = [a for a, t in (("turntable", t_tt), ("tilt", t_tl)) if t > 0]
-        settle = _settle(evs[0], rig, moved)
+        # Only the tilt's ringing matters: the turntable starts its run-up from where it stopped.
+        settle = _settle(evs[0], rig, ["tilt"] if t_tl > 0 else [])
         # Run-up and run-down at acceleration a take ω/a together; the span at ω.
         span = abs(a1 - a0)
         t_sweep = span / w + w / tt.accel_dps2 + (sweep.frames_per_pose - 1) * interval[c]
-        b["motion"] += t_tt + t_tl
-        b["settle"] += settle
-        b["warmup"] += warm
+        # The engine (continuous_steps): lamps switched, tilt moved, then the turntable to the
+        # run-up's start (after the tilt: one GRBL planner runs blocks in sequence), while the
+        # tilt settles and the lamps warm; the rotation starts its run-up (ω/a) that much early.
+        base, ramp = t_tl + t_tt, w / tt.accel_dps2
+        waits = {"settle": t_tl + settle - ramp - base, "warmup": warm - ramp - base}
+        longest = max(waits, key=lambda k: waits[k])
+        b["motion"] += base
+        b[longest] += max(0.0, waits[longest])
         b["sweep"] += t_sweep
         lower += max(t_tt, t_tl, warm) + t_sweep
         pos_tt, pos_tl = end, evs[0].tilt_deg

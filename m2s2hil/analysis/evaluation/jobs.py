@@ -23,6 +23,7 @@ from m2s2hil.store.session import SessionStore
 from m2s2hil.store.zarr_export import zarr_frames
 
 TRUTH_ROLE = "truth_labels"  # the ``extra`` role the engine stores the simulator's label map under
+PROJECTED_ROLE = "projected_labels"  # the twin's projected labels of a HIL frame (twin.labels)
 
 
 class EvaluationError(UsageError):
@@ -55,6 +56,7 @@ class FrameJob:
     dark: FileRef | None = None
     labels: FileRef | None = None
     preview: FileRef | None = None
+    projected: FileRef | None = None  # the twin's projected labels (HIL columns of Table 2)
 
 
 def _camera_json(model: CameraModel) -> dict[str, Any]:
@@ -98,6 +100,7 @@ def session_jobs(store: SessionStore) -> list[FrameJob]:
                 dark=ref(dark.files["master"]) if dark is not None else None,
                 labels=labels,
                 preview=ref(files["preview"]) if "preview" in files else None,
+                projected=ref(files[PROJECTED_ROLE]) if PROJECTED_ROLE in files else None,
             )
         )
     return jobs

@@ -127,3 +127,10 @@ def load_truth(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:
     data = _read(job.labels)
     arr = decode_tiff(data)[0] if job.labels.path.endswith((".tif", ".tiff")) else decode_image(data)
     return labels_to_cube(arr, shape)
+
+
+def load_projected(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:
+    """The twin's projected labels of the job's frame on the cube's grid, or None without them."""
+    if job.projected is None:
+        return None
+    return labels_to_cube(decode_image(_read(job.projected)), shape)

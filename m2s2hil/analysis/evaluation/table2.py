@@ -28,6 +28,9 @@ two builds can have the same class count (Hubble B2 and B3 both have 4 materials
 - mTC per lighting condition (Dir / Weak / Strong): mean mTC of the multispectral
   segmenter over the row's images under that condition (images without ground truth
   count too: mTC needs none).
+- HIL Macro Precision / Recall / Dice: the multispectral segmenter on the row's HIL frames
+  against the twin's projected labels (``evaluate``'s ``hil_*`` scores; frames stored with
+  ``projected_labels``), mean over those frames; the columns appear when any row has them.
 """
 
 from __future__ import annotations
@@ -115,6 +118,8 @@ class Table2Row:
     n_truth: int
     cells: dict[str, MetricCell] = field(default_factory=dict)
     mtc: dict[str, tuple[float, int]] = field(default_factory=dict)  # lighting -> (mean, images)
+    # HIL frames against the twin's projected labels: metric -> (the multispectral segmenter's mean, images)
+    hil: dict[str, tuple[float, int]] = field(default_factory=dict)
 
 
 def _ok(v: Any) -> bool:
@@ -169,6 +174,12 @@ def build_rows(
             ]
             if vals:
                 mtc[light] = (float(np.mean(vals)), len(vals))
+        hil: dict[str, tuple[float, int]] = {}
+        for metric in METRICS:
+            vals = [float(r["results"][multi][f"hil_{metric}"]) for r in recs
+                    if _ok(r.get("results", {}).get(multi, {}).get(f"hil_{metric}"))]
+            if vals:
+                hil[metric] = (float(np.mean(vals)), len(vals))
         name = cat.satellites[sat].name if sat in cat.satellites else sat
         classes = int(recs[0]["classes"])
         rows.append(
@@ -182,6 +193,7 @@ def build_rows(
                 sum(bool(r.get("has_truth")) for r in recs),
                 cells,
                 mtc,
+                hil,
             )
         )
     return rows
@@ -234,6 +246,8 @@ def to_markdown(rows: Sequence[Table2Row], *, notes: Sequence[str] = ()) -> str:
     for m in METRICS:
         head += [f"{METRIC_TITLES[m]} RGB", f"{METRIC_TITLES[m]} Multi", f"{METRIC_TITLES[m]} ρ̂"]
     head += [f"mTC {LIGHTING_TITLES.get(lt, lt)}" for lt in lights]
+    hil = [m for m in METRICS if any(m in r.hil for r in rows)]
+    head += [f"HIL {METRIC_TITLES[m]}" for m in hil]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cols = [r.satellite_name, r.build, str(r.classes), r.elevation, str(r.n_images)]
@@ -244,9 +258,13 @@ def to_markdown(rows: Sequence[Table2Row], *, notes: Sequence[str] = ()) -> str:
             else:
                 cols += [_marked(cell.rgb, cell, "rgb"), _marked(cell.multi, cell, "multi"), _observed(cell)]
         cols += [_f(r.mtc[lt][0]) if lt in r.mtc else "–" for lt in lights]
+        cols += [_f(r.hil[m][0]) if m in r.hil else "–" for m in hil]
         lines.append("| " + " | ".join(cols) + " |")
     out = "\n".join(lines) + "\n"
     all_notes = [*disagreement_notes(rows), *notes]
+    if hil:
+        all_notes.append("HIL: the multispectral segmenter on the HIL frames against the registered twin's "
+                         "projected labels (m2s2hil.twin.labels), not a ground truth: the paper had none.")
     if all_notes:
         out += "\n" + "\n".join(f"- {n}" for n in all_notes) + "\n"
     return out
@@ -287,6 +305,10 @@ def table_rows(rows: Sequence[Table2Row]) -> list[dict[str, Any]]:
             mean_n = r.mtc.get(lt)
             d[f"mtc_{lt}"] = mean_n[0] if mean_n else ""
             d[f"mtc_{lt}_n"] = mean_n[1] if mean_n else 0
+        for m in METRICS:
+            mean_n = r.hil.get(m)
+            d[f"hil_{m}"] = mean_n[0] if mean_n else ""
+            d[f"hil_{m}_n"] = mean_n[1] if mean_n else 0
         out.append(d)
     return out
 
