@@ -265,6 +265,19 @@ def test_live_view_ends_on_a_camera_that_only_fails_and_on_a_failed_render() -> 
     assert live.state == "error" and "the cube has no bands" in (live.stopped_reason or "")
 
 
+def test_live_stream_recovers_from_a_stalled_camera_stream(tmp_path: Path) -> None:
+    """The camera's stream stalls after its first frame (it stays stalled until acquisition is
+    restarted): the viewer is told the error, the next grab restarts the stream, and the frames
+    asked for arrive (before, every grab timed out again and the request never ended)."""
+    with daemon(tmp_path / "data", faults={"toucan": [{"kind": "stall", "count": 1, "after": 1}]}) as dd:
+        r = dd.client.get("/camera/live.mjpeg", params={"max_frames": 3})
+        parts = mjpeg_parts(r.content)
+        errors = [json.loads(f["X-Live-Status"]) for f, _ in parts if "X-Live-Status" in f]
+        assert len(mjpeg_frames(r.content)) == 3, errors
+        assert any(e["state"] == "error" for e in errors), errors  # the stall was seen, and said
+        assert "max_frames" in json.loads(parts[-1][0]["X-Live-End"])["reason"]
+
+
 def test_live_stream_viewer_leaving_at_the_worst_moment_is_let_go(d) -> None:
     """A client that goes while the stream waits for its first frame, or while a part is being sent
     (its peer vanished mid-send): the request ends (no hang), the viewer leaves the count and the

@@ -145,3 +145,21 @@ def reliability(
     energy = np.sqrt(np.einsum("bhw,bhw->hw", cube[bands], cube[bands]))
     snr = energy / float(np.sqrt(np.sum(noise[bands] ** 2)))
     return Reliability(bands, clipped, sat & fg, (snr < snr_min) & fg, noise, snr)
+
+
+def pool_size(noise_deg: float, target_deg: float) -> int:
+    """Pixels to average so that an angular noise of ``noise_deg`` per pixel falls to ``target_deg``:
+    the mean of n independent spectra has 1/√n of the noise, so n = ⌈(noise / target)²⌉ (1 = none)."""
+    if not np.isfinite(noise_deg) or noise_deg <= target_deg:
+        return 1
+    return int(np.ceil((noise_deg / target_deg) ** 2))
+
+
+def superpixel_means(cube: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """(n_segments + 1, bands) mean spectrum of each segment id of ``segments`` (row 0: id 0)."""
+    ids = segments.ravel()
+    n = int(ids.max()) + 1
+    count = np.maximum(np.bincount(ids, minlength=n), 1).astype(np.float64)
+    flat = cube.reshape(cube.shape[0], -1)
+    return np.stack([np.bincount(ids, weights=flat[b], minlength=n) for b in range(cube.shape[0])], axis=1) \
+        / count[:, None]
