@@ -82,7 +82,9 @@ from m2s2hil.analysis.segmenters.normalise import (
     Reliability,
     neighbour_angle_deg,
     normalise_cube,
+    pool_size,
     reliability,
+    superpixel_means,
 )
 from m2s2hil.catalog import load_catalog
 
@@ -250,6 +252,8 @@ class SpectralSegmenter:
         robust: bool = True,
         snr_min: float = 10.0,
         white: object | None = None,
+        pool_target_deg: float = 2.0,
+        merge_noise: float = 2.0,
     ) -> None:
         if not 1 <= min_materials <= max_materials:
             raise AnalysisInputError(
@@ -301,6 +305,12 @@ class SpectralSegmenter:
             raise AnalysisInputError("foreground", f"expected 'backdrop' or 'otsu', got {foreground!r}")
         if not snr_min >= 0:
             raise AnalysisInputError("snr_min", f"must be ≥ 0, got {snr_min}")
+        if not pool_target_deg >= 0:
+            raise AnalysisInputError("pool_target_deg", f"must be ≥ 0 (0 = no pooling), got {pool_target_deg}")
+        if not merge_noise >= 0:
+            raise AnalysisInputError("merge_noise", f"must be ≥ 0 (0 = fixed merge angle), got {merge_noise}")
+        self.pool_target_deg = float(pool_target_deg)
+        self.merge_noise = float(merge_noise)
         self.robust = bool(robust)
         self.snr_min = float(snr_min)
         self.white = None if white is None else np.asarray(white, dtype=np.float64)
@@ -363,12 +373,16 @@ class SpectralSegmenter:
             value -= 2.0 * float(np.sum(xlogy(z, z)))
         return value
 
-    def _groups(self, gm: GaussianMixture | BayesianGaussianMixture, n_spectral: int) -> np.ndarray:
-        """0/1 matrix (components × surviving groups) after angle merging and the weight floor."""
+    def _groups(self, gm: GaussianMixture | BayesianGaussianMixture, n_spectral: int,
+                limit: np.ndarray | None = None) -> np.ndarray:
+        """0/1 matrix (components × surviving groups) after angle merging and the weight floor;
+        ``limit`` (components × components, degrees): the noise-aware merge angle, else the fixed one."""
         n = gm.n_components
         spec = gm.means_[:, :n_spectral]  # angle between the spectral parts (not brightness)
         means = spec / np.maximum(np.linalg.norm(spec, axis=1, keepdims=True), 1e-12)
         angle = np.degrees(np.arccos(np.clip(means @ means.T, -1.0, 1.0)))
+        if limit is None:
+            limit = np.full((n, n), self.merge_angle_deg)
         parent = list(range(n))
 
         def root(i: int) -> int:
@@ -379,7 +393,7 @@ class SpectralSegmenter:
 
         for i in range(n):
             for j in range(i + 1, n):
-                if angle[i, j] < self.merge_angle_deg:
+                if angle[i, j] < limit[i, j]:
                     parent[root(j)] = root(i)
         roots = sorted({root(i) for i in range(n)})
         member = np.zeros((n, len(roots)))
@@ -390,6 +404,58 @@ class SpectralSegmenter:
         if not keep.any():
             keep[int(weight.argmax())] = True
         return member[:, keep]
+
+    def _pool(self, arr: np.ndarray, unit: np.ndarray, fg: np.ndarray, rel: Reliability, per: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Superpixels of about ``per`` pixels (SLICO on the unit spectra, foreground only: edges
+        between materials bound them where they stand above the noise) and each pixel's spectrum
+        replaced by its superpixel's mean; the fit's samples are one row per superpixel, so the
+        samples BIC counts are independent (pooled pixels are not). Superpixels that are mostly
+        rim or saturated, or whose mean is still near-black, are left out of the fit."""
+        shown = np.zeros_like(unit)
+        shown[:, fg] = unit[:, fg]
+        n_fg = int(fg.sum())
+        sp = slic(shown, n_segments=max(1, n_fg // per), slic_zero=True, mask=fg, channel_axis=0,
+                  start_label=1, enforce_connectivity=True)
+        means = superpixel_means(arr, sp)  # (n_sp + 1, bands)
+        out = arr.copy()
+        out[:, fg] = means[sp[fg]].T
+        unit_p = features_of(out, self.features)
+        energy_p = np.linalg.norm(out, axis=0)
+        feats = unit_p
+        if self.brightness_weight > 0:
+            feats = np.concatenate([unit_p, self.brightness_weight * np.log(np.maximum(energy_p, 1e-12))[None]])
+        ids = sp.ravel()
+        n = int(sp.max()) + 1
+        size = np.bincount(ids, minlength=n)
+        clean = ndimage.binary_erosion(fg) & ~rel.saturated
+        clean_share = np.bincount(ids, weights=clean.ravel().astype(np.float64), minlength=n) / np.maximum(size, 1)
+        noise_e = float(np.sqrt(np.sum(rel.noise[rel.bands] ** 2)))
+        snr = np.linalg.norm(means, axis=1) * np.sqrt(np.maximum(size, 1)) / noise_e
+        good = (size > 0) & (clean_share >= 0.5) & (snr >= self.snr_min)
+        good[0] = False
+        fit = fg & good[sp]
+        first = np.zeros(n, dtype=np.int64)  # one pixel of each superpixel carries its features
+        first[ids[::-1]] = np.arange(ids.size)[::-1]
+        rows = feats.reshape(feats.shape[0], -1)[:, first[good]].T
+        return out, unit_p, energy_p, feats, fit, rows
+
+    def _merge_limit(self, gm: GaussianMixture | BayesianGaussianMixture, sample: np.ndarray,
+                     noise_deg: float, n_spectral: int) -> np.ndarray:
+        """Merge angle per pair of components: ``merge_noise`` × the angle two samples of the same
+        spectrum differ by at the components' brightness, √(θᵢ² + θⱼ²), with θ = the measured noise
+        angle of one sample (``noise_deg``, at the median brightness) × √(median e / e) — shot noise
+        (a dimmer material's shape is noisier); never below ``merge_angle_deg``."""
+        n = gm.n_components
+        e = np.linalg.norm(sample[:, :n_spectral], axis=1)  # unit spectra: 1; brightness from the log
+        if self.brightness_weight > 0:
+            e = np.exp(sample[:, -1] / self.brightness_weight)
+        comp = gm.predict(sample)
+        med = float(np.median(e))
+        ek = np.array([float(np.median(e[comp == k])) if np.any(comp == k) else med for k in range(n)])
+        theta = noise_deg * np.sqrt(np.clip(med / np.maximum(ek, 1e-12), 0.25, 16.0))
+        pair = self.merge_noise * np.sqrt(theta[:, None] ** 2 + theta[None, :] ** 2)
+        return np.maximum(pair, self.merge_angle_deg)
 
     def analyse(self, cube: object, *, saturated: np.ndarray | None = None) -> SpectralSegmentation:
         """Segment ``cube`` and return the labels with the fit's diagnostics; ``saturated``: the
@@ -423,8 +489,18 @@ class SpectralSegmenter:
             feats = np.concatenate([unit, self.brightness_weight * log_e])
         else:
             feats = unit
+        pooled: np.ndarray | None = None  # the fit's samples when the cube is pooled into superpixels
+        per, noise_deg = 1, float("nan")
+        if rel is not None:
+            noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
+            if self.pool_target_deg > 0:
+                per = pool_size(noise_deg, self.pool_target_deg)
+        if per > 1 and rel is not None:
+            arr, unit, energy, feats, fit, pooled = self._pool(arr, unit, fg, rel, per)
         spectra = feats[:, fg].T  # (n_fg, features)
-        if self.fit_pixels == "all":
+        if pooled is not None:
+            pass
+        elif self.fit_pixels == "all":
             fit = fg
         else:
             scale = None
@@ -433,17 +509,19 @@ class SpectralSegmenter:
                 scale = np.sqrt(np.maximum(ref / np.maximum(energy, 1e-12), 1.0))
             angle = self.homogeneity_deg
             if rel is not None:  # the test's angle follows the cube's own noise (low exposure)
-                noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
                 if np.isfinite(noise_deg):
                     angle = min(max(angle, NOISE_ANGLE_FACTOR * noise_deg), 45.0)
             fit = homogeneous_pixels(unit, fg, angle, scale)
-        if rel is not None:
+        if rel is not None and pooled is None:
             fit = fit & ~rel.unreliable
             if int(fit.sum()) < MIN_FIT_PIXELS:
                 fit = fg & ~rel.unreliable
-        if int(fit.sum()) < MIN_FIT_PIXELS:  # too few clean pixels (a tiny or noisy object): use them all
+        if pooled is not None and pooled.shape[0] < MIN_FIT_PIXELS:  # too few superpixels: every pixel
+            pooled = None
             fit = fg
-        pool = feats[:, fit].T
+        if pooled is None and int(fit.sum()) < MIN_FIT_PIXELS:  # too few clean pixels: use them all
+            fit = fg
+        pool = feats[:, fit].T if pooled is None else pooled
         rng = np.random.default_rng(self.seed)
         sample = pool
         if pool.shape[0] > self.sample_size:
@@ -467,7 +545,10 @@ class SpectralSegmenter:
                     if stale >= self.bic_patience:
                         break
         assert best is not None
-        groups = self._groups(best, unit.shape[0])
+        limit = None
+        if rel is not None and self.merge_noise > 0 and np.isfinite(noise_deg):
+            limit = self._merge_limit(best, sample, noise_deg / np.sqrt(2.0 * per), unit.shape[0])
+        groups = self._groups(best, unit.shape[0], limit)
         resp = best.predict_proba(spectra) @ groups  # (n_fg, n_groups) summed posteriors
         comp = resp.argmax(axis=1)
         n_groups = groups.shape[1]
