@@ -93,7 +93,21 @@ def n_threads() -> int:
 
 @cache
 def _pool(n: int) -> ThreadPoolExecutor:
+    numba_ready()  # here, in the thread that fans the bands out, before a worker calls a kernel
     return ThreadPoolExecutor(max_workers=n, thread_name_prefix="sim-render")
+
+
+def numba_ready() -> None:
+    """Numba fills its type registry (``typeof_impl``, a ``functools.singledispatch``) on its first
+    compile or cache load, importing as it goes (a second or more on a loaded machine); a thread
+    typing its arguments meanwhile iterates that registry and fails with "dictionary changed size
+    during iteration" (the render's bands compile at once on their first frame). Filled once here,
+    under numba's compiler lock; later calls cost a fraction of a millisecond."""
+    from numba.core.compiler_lock import global_compiler_lock
+    from numba.core.registry import cpu_target
+
+    with global_compiler_lock:
+        cpu_target.target_context.refresh()
 
 
 def split_rows(fn: Callable[[int, int], object], height: int, threads: int | None = None) -> None:

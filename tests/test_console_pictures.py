@@ -10,6 +10,7 @@ the live view and calibration captures are cheap."""
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import cv2
@@ -24,6 +25,11 @@ from m2s2hil.store.session import SessionStore
 
 N = 64
 DARK = 3.0
+
+
+CLASSES = ("background", "gold_foil", "solar_panel")
+LABELS = np.zeros((N // 4, N // 4), np.uint8)  # a projected label map at the cube's size
+LABELS[2:8, 2:14], LABELS[9:14, 4:10] = 1, 2
 
 
 def band_levels(ev_index: int) -> np.ndarray:
@@ -56,12 +62,21 @@ def write_session(root: Path) -> tuple[str, dict[str, int]]:
         rgb = np.zeros((N // 4, N // 4, 3), np.uint8)
         rgb[..., 1] = 40 * (k + 1)
         qc = {"score": 0.4, "flags": ["unstable"]} if k == 1 else {"score": 0.95, "flags": []}
+        extra = None
+        if k == 1:  # the twin flagged it and projected its labels (as analysis.qc stores them)
+            qc = {**qc, "flags": ["unstable", "off_axis"],
+                  "twin": {"flags": ["off_axis"], "frame_flags": ["off_axis"]},
+                  "projected_labels": {"class_names": list(CLASSES), "confidence": 0.9, "source": "twin"}}
+            extra = {"projected_labels": LABELS}
+        elif k == 2:  # checked, nothing found, no placement yet
+            qc = {**qc, "twin": {"flags": [], "frame_flags": ["yawed"]}}
         rec = st.write_frame(ev, raw, preview_rgb=rgb, meta={"exposure_s": 0.01, "gain": 1.0, "qc": qc,
-                                                             "temperature_c": 30.0})
+                                                             "temperature_c": 30.0}, extra=extra)
         idx[ev.event_id] = rec.index
     st.record_skip(frames[5], "MoveStalled: the turntable stalled", "motion")
     st.close()
     return st.session_id, {"first": idx[frames[0].event_id], "flagged": idx[frames[1].event_id],
+                           "checked": idx[frames[2].event_id],
                            "skipped_event": frames[5].event_id}  # type: ignore[dict-item]
 
 
@@ -135,6 +150,34 @@ def test_coverage_states_and_report_map(d) -> None:
     assert "<svg" in page and "coverage map" in page
     assert "href='#frame-" in page and "id='frame-" in page  # a cell links to its frame in the sheet
     assert "<details" in page  # the per-pose table stays, folded
+
+
+def test_twin_flags_and_projected_labels_of_a_frame(d) -> None:
+    n, url = d.idx["flagged"], f"/sessions/{d.sid}/frames/{{}}/twin"
+    t = d.client.get(url.format(n)).json()
+    assert t["checked"] and t["flags"] == ["off_axis"] and t["confidence"] == 0.9
+    legend = [(i["index"], i["name"], i["pixels"]) for i in t["legend"]]
+    assert legend == [(1, "gold_foil", 72), (2, "solar_panel", 30)]
+    r = d.client.get(t["labels_url"])
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert "gold_foil" in r.headers["x-alt"]
+    img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (N // 4, N // 4, 4)
+    assert img[0, 0, 3] == 0 and img[3, 3, 3] == 255 and img[10, 5, 3] == 255  # background clear
+    hexes = {i["index"]: i["colour"] for i in t["legend"]}
+    bgr = {1: img[3, 3, :3], 2: img[10, 5, :3]}
+    assert all(f"#{c[2]:02x}{c[1]:02x}{c[0]:02x}" == hexes[k] for k, c in bgr.items()), (bgr, hexes)
+    # checked with nothing found (its own frame flag kept), and never checked: no labels, a 404 saying why
+    t2 = d.client.get(url.format(d.idx["checked"])).json()
+    assert t2["checked"] and t2["flags"] == [] and t2["frame_flags"] == ["yawed"] and t2["labels_url"] is None
+    t0 = d.client.get(url.format(d.idx["first"])).json()
+    assert not t0["checked"] and t0["legend"] == []
+    r = d.client.get(f"/sessions/{d.sid}/frames/{d.idx['first']}/labels.png")
+    assert r.status_code == 404 and "no projected labels" in r.json()["detail"]
+    assert d.client.get(url.format(999)).status_code == 404
+    cov = d.client.get(f"/sessions/{d.sid}/coverage").json()
+    marked = {c["n"]: (c["twin_flags"], c["labels"]) for c in cov["cells"] if c["twin_flags"] or c["labels"]}
+    assert marked == {n: (["off_axis"], True)} and cov["twin"] == {"checked": 2, "flagged": 1, "labelled": 1}
 
 
 def test_live_spectrum_reads_the_newest_live_frame(d) -> None:
@@ -272,3 +315,28 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
         assert width <= 390, f"the frame viewer is {width} px wide on a 390-px phone"
         assert stage and spec and spec["y"] >= stage["y"] + stage["height"] - 1  # stacked, not squeezed
     assert not errors, errors
+
+
+def test_export_progress_reaches_the_callback_the_job_and_the_activity_log(d, tmp_path: Path) -> None:
+    from m2s2hil.store.export import Progress, export_session
+
+    calls: list[tuple[int, int]] = []
+    with d.manager.reads.reading(d.sid) as st:
+        export_session(st, tmp_path / "out", "m2s2", progress=lambda k, n: calls.append((k, n)))
+    assert calls[0] == (1, 5) and calls[-1] == (5, 5), calls  # first and last always told
+    assert [k for k, _ in calls] == sorted({k for k, _ in calls})  # rising, none twice
+    p, seen = Progress(lambda k, n: seen.append(k), 100, every_s=3600.0), []  # throttled: ends only
+    for _ in range(100):
+        p.step()
+    assert seen == [1, 100]
+    since = d.client.get("/activity").json()["last_seq"]
+    job = d.client.post(f"/sessions/{d.sid}/export/jobs", json={"layout": "m2s2", "overwrite": True})
+    assert job.status_code == 202 and job.json()["fraction"] == 0.0 and job.json()["total"] == 5, job.text
+    deadline = time.monotonic() + 60
+    while (j := d.client.get(job.json()["url"]).json())["state"] == "running":
+        assert time.monotonic() < deadline and 0.0 <= j["fraction"] <= 1.0, j
+        time.sleep(0.02)
+    assert j["state"] == "done" and (j["done"], j["total"], j["fraction"]) == (5, 5, 1.0), j
+    log = d.client.get("/activity", params={"since": since, "kind": "action"}).json()["items"]
+    marks = [a["details"].get("export_progress") for a in log if a["details"].get("job_id") == j["job_id"]]
+    assert marks == [0.0, 1.0], log

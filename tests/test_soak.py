@@ -26,7 +26,7 @@ pytestmark = pytest.mark.slow
 
 REDUCED = SoakConfig(sim_s=150.0, kills=2, seed=7, size=64, full_step_deg=90.0, tick_s=0.3,
                      p_estop=0.04, p_hold=0.05, p_viewer=0.15, p_export=0.1, probe_s=1.5,
-                     hold_s=(0.5, 1.5), drain_wall_s=120.0, idle_samples=6, max_wall_s=240.0)
+                     hold_s=(0.5, 1.5), drain_wall_s=120.0, idle_samples=6, max_wall_s=360.0)
 
 
 @pytest.fixture(scope="module")

@@ -247,6 +247,9 @@ class ExportJobOut(_Out):
     finished: float | None
     elapsed_s: float
     frames: int | None = Field(description="Frames the session had when the export started.")
+    done: int = Field(0, description="Frames exported so far (updated at most every 0.5 s).")
+    total: int | None = Field(None, description="Frames the export writes (as ``frames``).")
+    fraction: float = Field(0.0, description="done / total, 0–1 (1 once done).")
     result: dict[str, Any] | None = Field(description="folder, images, files, once done.")
     error: str | None
     url: str

@@ -528,7 +528,8 @@ $("b-export").addEventListener("click", busyHandler($("b-export"), async () => {
   const sid = state.browserId, layout = $("b-layout").value, out = $("b-result");
   let job = await guarded(() => api("POST", `/sessions/${sid}/export/jobs`, { layout, overwrite: true }), out);
   while (job && job.state === "running") {
-    report(out, `exporting ${layout}: ${job.phase} · ${fmtS(job.elapsed_s)}` + (job.frames ? ` · ${job.frames} frames` : ""), true);
+    report(out, `exporting ${layout}: ${job.phase} · ${fmtS(job.elapsed_s)}`, true);
+    if (typeof exportProgress === "function") exportProgress(out, job);  // the bar (feedback.js)
     await new Promise((ok) => setTimeout(ok, 1000));
     job = await guarded(() => api("GET", `/exports/jobs/${job.job_id}`), out);
   }

@@ -45,6 +45,17 @@ new MutationObserver(() => {
   lastRun = { id: sid, state: st };
 }).observe($("run-state"), { childList: true, characterData: true, subtree: true });
 
+// ------------------------------------------------------------------ export progress
+// console.js's export loop calls this with each job it polls (GET /exports/jobs/{id}: done, total,
+// fraction): a bar and the percentage under the phase line.
+function exportProgress(out, job) {
+  const f = Math.max(0, Math.min(1, job.fraction ?? 0));
+  const bar = el("progress"); bar.id = "export-progress"; bar.max = 1; bar.value = f;
+  bar.setAttribute("aria-label", "export progress");
+  out.append(document.createTextNode("\n"), bar,
+    el("span", ` ${Math.round(100 * f)}% · ${job.done ?? 0} of ${job.total ?? job.frames ?? "?"} frames`));
+}
+
 // ------------------------------------------------------------------ the log dialog
 function buildLog() {
   const d = el("dialog"); d.id = "log-dialog"; d.setAttribute("aria-labelledby", "log-title");

@@ -185,7 +185,7 @@ const pictures = (() => {
   // One overlay for every view: the frame's preview or its ten band images, zoom (wheel, pinch,
   // buttons) and pan (drag), a click or a drag for the spectrum beside it.
   const fv = { sid: null, n: null, items: [], img: null, mode: "preview", scale: 1, tx: 0, ty: 0, sensor: null,
-    region: null, pointers: new Map(), panel: null, bandsGeom: null };
+    region: null, pointers: new Map(), panel: null, bandsGeom: null, labels: null };
   function viewerSetup() {
     const ov = mk("div", { id: "frame-viewer", class: "overlay pic-overlay", role: "dialog", "aria-modal": "true", "aria-labelledby": "fv-title" });
     ov.hidden = true;
@@ -199,7 +199,7 @@ const pictures = (() => {
     const btn = (id, text, label, fn) => { const b = mk("button", { id, type: "button", "aria-label": label }, text); b.addEventListener("click", fn); return b; };
     bar.append(title,
       btn("fv-prev", "◀", "previous frame", () => step(-1)), btn("fv-next", "▶", "next frame", () => step(1)),
-      mode, drag,
+      mode, drag, labelsToggle(),
       btn("fv-zoom-in", "+", "zoom in", () => zoomAt(1.5)), btn("fv-zoom-out", "−", "zoom out", () => zoomAt(1 / 1.5)),
       btn("fv-reset", "Reset zoom", "reset zoom and pan", () => { resetView(); draw(); }),
       btn("fv-close", "Close", "close the frame viewer", close));
@@ -210,7 +210,8 @@ const pictures = (() => {
     const side = mk("div", { class: "pic-side", id: "fv-spectrum" });
     body.append(stage, side);
     const info = mk("div", { class: "muted", id: "fv-info" });
-    card.append(bar, info, body); ov.append(card); document.body.append(ov);
+    const twin = mk("div", { class: "row muted pic-legend", id: "fv-twin", "aria-live": "polite" });
+    card.append(bar, info, twin, body); ov.append(card); document.body.append(ov);
     fv.panel = spectrumPanel(side, "Spectrum");
     mode.addEventListener("change", () => { fv.mode = mode.value; loadImage(); });
     // zoom at the pointer with the wheel; pan by dragging; pinch with two fingers
@@ -250,6 +251,41 @@ const pictures = (() => {
       });
     }
   }
+  // The twin's projected labels over the frame (GET …/labels.png, RGBA), toggled; off while the
+  // frame has none. Remembered across frames and visits (localStorage).
+  function labelsToggle() {
+    const lab = mk("label", { title: "the registered twin's label map at this frame's pose" });
+    const cb = mk("input", { type: "checkbox", id: "fv-labels" });
+    cb.checked = localStorage.getItem("m2s2hil.fv.labels") !== "0"; cb.disabled = true;
+    cb.addEventListener("change", () => { localStorage.setItem("m2s2hil.fv.labels", cb.checked ? "1" : "0"); draw(); });
+    lab.append(cb, document.createTextNode(" twin labels"));
+    return lab;
+  }
+  async function loadTwin() {
+    const want = [fv.sid, fv.n].join("/"); const box = byId("fv-twin"); const cb = byId("fv-labels");
+    if (fv.labels) { URL.revokeObjectURL(fv.labels.src); fv.labels = null; }
+    cb.disabled = true; box.replaceChildren();
+    let t;
+    try { t = await api("GET", `/sessions/${fv.sid}/frames/${fv.n}/twin`); } catch (e) { return; }
+    if (want !== [fv.sid, fv.n].join("/")) return;
+    const parts = [];
+    if (t.checked) parts.push(mk("span", { class: t.flags.length ? "bad" : "" }, t.flags.length ? "twin ⚑ " + t.flags.join(", ")
+      : "twin: no flag" + (t.frame_flags.length ? ` (this frame alone: ${t.frame_flags.join(", ")})` : "")));
+    if (t.labels_url) {
+      parts.push(mk("span", {}, "labels" + (t.confidence != null ? ` (confidence ${t.confidence.toFixed(2)})` : "") + ":"));
+      for (const it of t.legend) {
+        const sw = mk("span", { class: "cov-swatch", style: `background:${it.colour}`, "aria-hidden": "true" });
+        const item = mk("span", { class: "fv-legend-item", "data-index": String(it.index) }); item.append(sw, document.createTextNode(it.name));
+        parts.push(item);
+      }
+      try {
+        const img = new Image(); img.src = await blobUrl(t.labels_url); await img.decode();
+        if (want !== [fv.sid, fv.n].join("/")) { URL.revokeObjectURL(img.src); return; }
+        fv.labels = img; cb.disabled = false; draw();
+      } catch (e) { parts.push(mk("span", { class: "bad" }, "labels: " + e.message)); }
+    } else if (t.checked) parts.push(mk("span", {}, "· no projected labels (the twin is not registered yet)"));
+    box.replaceChildren(...parts);
+  }
   function pinchState() {
     const [a, b] = [...fv.pointers.values()];
     return { d: Math.max(1, Math.hypot(a.x - b.x, a.y - b.y)), cx: (a.x + b.x) / 2, cy: (a.y + b.y) / 2 };
@@ -281,7 +317,7 @@ const pictures = (() => {
     byId("fv-info").textContent = `${it.event_id} · ${ev.lighting ?? ""} ${ev.elevation ?? ""} az ${ev.nominal_azimuth_deg ?? ev.azimuth_deg ?? "?"}°` +
       (qc.score != null ? ` · QC ${Number(qc.score).toFixed(3)}` : "") + (qc.flags && qc.flags.length ? " ⚑ " + qc.flags.join(", ") : "");
     byId("fv-prev").disabled = fv.items[0].n === it.n; byId("fv-next").disabled = fv.items[fv.items.length - 1].n === it.n;
-    loadImage();
+    loadImage(); loadTwin();
     // the centre cell's spectrum at once (it also tells the sensor's size), or the last region
     fv.region = fv.region && fv.sensor ? fv.region : null;
     frameSpectrum();
@@ -338,18 +374,15 @@ const pictures = (() => {
     ctx.setTransform(dpr * k, 0, 0, dpr * k, dpr * fv.tx, dpr * fv.ty);
     ctx.imageSmoothingEnabled = fv.scale < 4;  // zoomed in: show the pixels as they are
     ctx.drawImage(fv.img, 0, 0);
+    if (fv.labels && byId("fv-labels").checked) {  // over the image, or over every band's tile
+      ctx.globalAlpha = 0.45; ctx.imageSmoothingEnabled = false;
+      for (const [ox, oy, bw, bh] of imageBoxes()) ctx.drawImage(fv.labels, ox, oy, bw, bh);
+      ctx.globalAlpha = 1;
+    }
     const g = fv.region, s = fv.sensor;
     if (g && s) {  // the spectrum's region: on the image, or on every band's tile
       ctx.strokeStyle = "#ffe066"; ctx.lineWidth = 2 / k;
-      const boxes = [];
-      if (fv.mode === "preview") boxes.push([0, 0, fv.img.naturalWidth, fv.img.naturalHeight]);
-      else if (fv.bandsGeom) {
-        const t = fv.bandsGeom;
-        for (let b = 0; b < 10; b++) {
-          boxes.push([(b % t.cols) * t.tw + t.pad, Math.floor(b / t.cols) * t.th + t.pad + t.bar, t.tw - 2 * t.pad, t.th - 2 * t.pad - t.bar]);
-        }
-      }
-      for (const [ox, oy, bw, bh] of boxes) {
+      for (const [ox, oy, bw, bh] of imageBoxes()) {
         const sx = bw / s[0], sy = bh / s[1];
         ctx.strokeRect(ox + g.x * sx, oy + g.y * sy, Math.max(g.w * sx, 2 / k), Math.max(g.h * sy, 2 / k));
       }
@@ -358,6 +391,18 @@ const pictures = (() => {
     ctx.fillStyle = "rgba(0,0,0,.55)"; ctx.fillRect(0, H - 20 * dpr, 92 * dpr, 20 * dpr);
     ctx.fillStyle = "#fff"; ctx.font = `${11 * dpr}px system-ui, sans-serif`; ctx.textBaseline = "middle";
     ctx.fillText(`zoom ×${fv.scale.toFixed(fv.scale < 10 ? 1 : 0)}`, 6 * dpr, H - 10 * dpr);
+  }
+  // where the sensor's image is on the drawn picture: the whole preview, or each band's tile
+  function imageBoxes() {
+    const boxes = [];
+    if (fv.mode === "preview") boxes.push([0, 0, fv.img.naturalWidth, fv.img.naturalHeight]);
+    else if (fv.bandsGeom) {
+      const t = fv.bandsGeom;
+      for (let b = 0; b < 10; b++) {
+        boxes.push([(b % t.cols) * t.tw + t.pad, Math.floor(b / t.cols) * t.th + t.pad + t.bar, t.tw - 2 * t.pad, t.th - 2 * t.pad - t.bar]);
+      }
+    }
+    return boxes;
   }
   // canvas pixel → image pixel → sensor pixel (in the band view: within the tile under the pointer)
   function viewToSensor(cx, cy, clamp) {
@@ -422,7 +467,8 @@ const pictures = (() => {
         rect.setAttribute("width", cell - 2); rect.setAttribute("height", cell - 2); rect.setAttribute("rx", 2);
         rect.setAttribute("class", "cov-" + c.state);
         const tip = `${c.event_id}: ${STATE_TEXT[c.state]}` + (c.score != null ? `, QC ${Number(c.score).toFixed(3)}` : "") +
-          (c.flags.length ? " ⚑ " + c.flags.join(", ") : "") + (c.reason ? ` (${c.reason})` : "");
+          (c.flags.length ? " ⚑ " + c.flags.join(", ") : "") + (c.reason ? ` (${c.reason})` : "") +
+          (c.twin_flags && c.twin_flags.length ? ` · twin ⚑ ${c.twin_flags.join(", ")}` : "") + (c.labels ? " · projected labels" : "");
         const t = document.createElementNS(SVG, "title"); t.textContent = tip; rect.append(t);
         rect.setAttribute("aria-label", tip);
         if (c.n != null) {
@@ -432,12 +478,21 @@ const pictures = (() => {
           rect.addEventListener("keydown", (ev) => { if (ev.key === "Enter" || ev.key === " ") { ev.preventDefault(); go(); } });
         }
         svg.append(rect);
+        if (c.twin_flags && c.twin_flags.length) {  // the twin's flag: a magenta corner on the cell
+          const m = document.createElementNS(SVG, "path"); const x = left + k * cell + cell - 2, y = top + r * cell;
+          m.setAttribute("d", `M${x - 8} ${y}H${x}V${y + 8}Z`); m.setAttribute("fill", "#e0249a");
+          m.setAttribute("class", "cov-twin"); m.setAttribute("pointer-events", "none"); svg.append(m);
+        }
       }
       frag.push(svg);
     }
     const legend = mk("div", { class: "row pic-legend" });
     for (const s of ["captured", "flagged", "skipped", "failed", "pending"]) {
       const sw = mk("span", { class: "cov-swatch cov-" + s }); legend.append(mk("span", {}, ""), sw, document.createTextNode(`${STATE_TEXT[s]} ${cov.counts[s]}`));
+    }
+    if (cov.twin && cov.twin.checked) {
+      const sw = mk("span", { class: "cov-swatch", style: "background:#e0249a" });
+      legend.append(mk("span", {}, ""), sw, document.createTextNode(`twin flagged ${cov.twin.flagged} · labelled ${cov.twin.labelled}`));
     }
     box.replaceChildren(...frag, legend);
     box.dataset.session = sid;

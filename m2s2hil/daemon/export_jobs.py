@@ -4,7 +4,9 @@ An export takes from seconds to minutes (46 s for a Zarr store of a 36-frame ses
 shared machine), longer than a browser should hold a request open. :meth:`ExportJobs.start`
 answers at once with the job; the job runs :func:`~.export_lock.export_once` (so it excludes
 the CLI's and the synchronous endpoint's exports of the same folder) and records its phase,
-elapsed time and result; its start, end or failure also goes to the activity log. One job runs
+elapsed time, progress (frames ``done`` of ``total``, told by the export at most every 0.5 s)
+and result; its start, end or failure also goes to the activity log (kind ``action``, with
+``export_progress`` = 0 at the start and the fraction reached at the end or failure). One job runs
 at a time: while one runs, another is refused (409, :mod:`.busy` for the same session and
 layout). Jobs are kept in memory, the last :data:`KEEP` of them; the export itself is on disk
 (``<data root>/exports/<session>/<layout>/``) and downloadable as a zip (:func:`zip_chunks`).
@@ -41,16 +43,25 @@ class ExportJob:
     started: float = field(default_factory=time.time)
     finished: float | None = None
     frames: int | None = None
+    done: int = 0  # frames written so far (the export's progress callback)
     result: dict[str, Any] | None = None
     error: str | None = None
     _t0: float = field(default_factory=time.monotonic)
     _t1: float | None = None
 
+    @property
+    def fraction(self) -> float:
+        return 1.0 if self.state == "done" else round(self.done / self.frames, 3) if self.frames else 0.0
+
+    def progress(self, done: int, total: int) -> None:
+        self.done, self.frames = done, total  # one writer (the job's thread); ints: no lock needed
+
     def to_dict(self) -> dict[str, Any]:
         end = self._t1 if self._t1 is not None else time.monotonic()
         return {"job_id": self.job_id, "session_id": self.session_id, "layout": self.layout,
                 "state": self.state, "phase": self.phase, "started": self.started, "finished": self.finished,
-                "elapsed_s": round(end - self._t0, 1), "frames": self.frames, "result": self.result,
+                "elapsed_s": round(end - self._t0, 1), "frames": self.frames, "done": self.done,
+                "total": self.frames, "fraction": self.fraction, "result": self.result,
                 "error": self.error, "url": f"/exports/jobs/{self.job_id}",
                 "download_url": (f"/sessions/{self.session_id}/export/{self.layout}.zip"
                                  if self.state == "done" else None)}
@@ -84,7 +95,7 @@ class ExportJobs:
             while len(self._jobs) > KEEP:
                 self._jobs.popitem(last=False)
         self._mg.activity.record("action", f"export {layout} of {session_id} started ({frames} frames)",
-                                 session_id=session_id, job_id=job.job_id)
+                                 session_id=session_id, job_id=job.job_id, export_progress=0.0)
         threading.Thread(target=self._run, args=(job, busy), name=f"export-{job.job_id}", daemon=True).start()
         return job
 
@@ -97,12 +108,13 @@ class ExportJobs:
         try:
             job.phase = "exporting"
             with self._mg.reads.reading(job.session_id) as store:
-                res = export_once(store, out, job.layout, overwrite=job.overwrite, fresh=job.overwrite)
+                res = export_once(store, out, job.layout, overwrite=job.overwrite, fresh=job.overwrite,
+                                  progress=job.progress)
             job.result = {"folder": str(out), "images": res.images, "files": len(res.files)}
             job.state = job.phase = "done"
             self._mg.activity.record("action", f"export {job.layout} of {job.session_id} done: {res.images} "
                                      f"images, {len(res.files)} files", session_id=job.session_id,
-                                     job_id=job.job_id)
+                                     job_id=job.job_id, export_progress=1.0)
         except Exception as exc:
             hint = (" (it is exported already: ask with overwrite)"
                     if isinstance(exc, ExportError) and out.exists() and not job.overwrite else "")
@@ -110,7 +122,8 @@ class ExportJobs:
             job.error = f"{type(exc).__name__}: {exc}{hint}{busy_now}"
             job.state = job.phase = "failed"
             self._mg.activity.record("action", f"export {job.layout} of {job.session_id} failed: {job.error}",
-                                     level="error", session_id=job.session_id, job_id=job.job_id)
+                                     level="error", session_id=job.session_id, job_id=job.job_id,
+                                     export_progress=job.fraction)
         finally:
             job.finished, job._t1 = time.time(), time.monotonic()
             self._mg.busy.end(busy)

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from m2s2hil.atomic import fsync_dir
 from m2s2hil.errors import M2S2Error
-from m2s2hil.store.export import ExportError, ExportResult, export_session
+from m2s2hil.store.export import ExportError, ExportResult, ProgressFn, export_session
 from m2s2hil.store.session import SessionStore
 
 STAGING_MARK = ".export-"
@@ -128,7 +128,7 @@ def _move_into_place(staged: Path, out: Path) -> None:
 
 
 def export_once(store: SessionStore, out: str | Path, layout: str = "m2s2", *, overwrite: bool = False,
-                fresh: bool = False) -> ExportResult:
+                fresh: bool = False, progress: ProgressFn | None = None) -> ExportResult:
     """:func:`~m2s2hil.store.export.export_session` into ``out``, exclusively and atomically (see
     the module docstring). ``fresh``: start from an empty folder (what was in ``out`` goes);
     otherwise the export adds to ``out`` and ``overwrite`` says whether it may replace files."""
@@ -143,7 +143,7 @@ def export_once(store: SessionStore, out: str | Path, layout: str = "m2s2", *, o
             staged = parent / out.name  # the same name: a dataset card names its folder
             if out.is_dir() and not fresh:
                 _link_tree(out, staged)
-            result = export_session(store, staged, layout, overwrite=overwrite)
+            result = export_session(store, staged, layout, overwrite=overwrite, progress=progress)
             _fsync_tree(staged)
             _move_into_place(staged, out)
         finally:

@@ -48,6 +48,7 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
+from m2s2hil.analysis.qc import capture_qc_hook
 from m2s2hil.engine.build import build_run
 from m2s2hil.engine.fault_policy import FaultPolicy
 from m2s2hil.engine.options import EngineOptions
@@ -254,10 +255,6 @@ class SessionManager:
         if self._home_deferred:  # released since the daemon started held: now the axes may move
             self.guard.home_switched_axes()
             self._home_deferred = False
-        # Imported here, as `capture` does: the QC pulls in scikit-learn and scikit-image, ~25 s of a
-        # daemon's start on a loaded 2-core machine before /healthz answers (the soak's restarts).
-        from m2s2hil.analysis.qc import capture_qc_hook
-
         runs = sum(1 for e in job.store.events() if e.get("kind") == "run_started")
         # The same builder as `capture`: processing, capture-time QC, the fault policy, the rig check.
         engine = build_run(self.rig, store=job.store, options=self.engine_options, policy=self.policy,

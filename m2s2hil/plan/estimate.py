@@ -231,7 +231,9 @@ def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
         b["motion"] += base
         b[longest] += max(0.0, waits[longest])
         b["sweep"] += t_sweep
-        lower += max(t_tt, t_tl, warm) + t_sweep
+        # The floor of this order: the first mark is crossed at ω no sooner than the turntable
+        # has repositioned and run up (ω/a from rest), the tilt has arrived and the lamps are warm.
+        lower += max(t_tt + ramp, t_tl, warm) + span / w + (sweep.frames_per_pose - 1) * interval[c]
         pos_tt, pos_tl = end, evs[0].tilt_deg
     total = sum(b.values())
     return ContinuousEstimate(

@@ -428,6 +428,10 @@ class LiveStream:
                     self._notify()
                 time.sleep(0.5)
                 continue
+            with self._cond:
+                # cleared here, not when the frame is published: the render of an earlier frame,
+                # running meanwhile, must not hide the error of a grab that came after it
+                self._error = None
             handoff.put(_Grabbed(frame, settings, generation, grabbed_at, 1e3 * (time.perf_counter() - t0)))
 
     def _render_loop(self, handoff: _Handoff) -> None:
@@ -451,12 +455,12 @@ class LiveStream:
                     if item.generation != self._generation or handoff.closed:
                         continue
                     self._latest = live
-                    self._error = None
                     self.frames_produced += 1
                     now = time.monotonic()
                     if self.cold_start_s is None:
                         self.cold_start_s = now - self._started_at
-                    self.state = "streaming"
+                    if self._error is None:  # a later grab's error stands until a grab succeeds
+                        self.state = "streaming"
                     self._frame_times = [*self._frame_times[-19:], now]
                     self._notify()
         except BaseException as exc:  # the grab loop raises it, and the producer ends with its reason

@@ -51,6 +51,8 @@ from __future__ import annotations
 import csv
 import io
 import json
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -83,6 +85,30 @@ PAIR_COLUMNS = (
 )
 MASK_ROLE, LABELS_ROLE = "truth_labels", "projected_labels"  # a frame's label files (extra roles)
 LABEL_FOLDERS = ((MASK_ROLE, "HILmasks", "mask_file"), (LABELS_ROLE, "HILlabels", "labels_file"))
+
+
+#: ``progress(done, total)``: frames written so far of the export's frames.
+ProgressFn = Callable[[int, int], None]
+
+
+class Progress:
+    """Counts an export's frames and passes ``(done, total)`` on to ``fn`` at most every
+    ``every_s`` seconds (a follower polls at about 1 Hz: more calls would only cost time), and
+    always for the first and the last frame."""
+
+    def __init__(self, fn: ProgressFn | None, total: int, every_s: float = 0.5) -> None:
+        self.fn, self.total, self.every_s = fn, total, every_s
+        self.done = 0
+        self._last = -float("inf")
+
+    def step(self, n: int = 1) -> None:
+        self.done = min(self.total, self.done + n)
+        if self.fn is None:
+            return
+        now = time.monotonic()
+        if self.done in (1, self.total) or now - self._last >= self.every_s:
+            self._last = now
+            self.fn(self.done, self.total)
 
 
 class ExportError(UsageError):
@@ -262,26 +288,28 @@ def _refuse_clash(planned: list[Path], overwrite: bool) -> None:
 
 
 def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *,
-                   overwrite: bool = False) -> ExportResult:
-    """Export every committed frame of ``store`` (see the module docstring)."""
+                   overwrite: bool = False, progress: ProgressFn | None = None) -> ExportResult:
+    """Export every committed frame of ``store`` (see the module docstring); ``progress(done,
+    total)`` is told of the frames written (:class:`Progress`: at most every 0.5 s)."""
     if layout not in LAYOUTS:
         raise ExportError(f"unknown export layout {layout!r}; known: {', '.join(LAYOUTS)}")
     out = Path(out)
     frames = store.frames()
     if not frames:
         raise ExportError(f"session {store.session_id} has no frames to export")
+    prog = Progress(progress, len(frames))
     if store.kind == "synthetic":
         n_az = len(store.sweep.azimuths())
         if layout != "m2s2":
             from m2s2hil.store.export_synthetic import export_synthetic
 
-            return export_synthetic(store, out, layout, frames, overwrite=overwrite)
-        return _export_synthetic_m2s2(store, out, frames, n_az, overwrite=overwrite)
+            return export_synthetic(store, out, layout, frames, overwrite=overwrite, progress=prog)
+        return _export_synthetic_m2s2(store, out, frames, n_az, overwrite=overwrite, progress=prog)
     if layout == "zarr":
         from m2s2hil.store.zarr_export import ZarrExportError, export_zarr
 
         try:
-            n = export_zarr(store, out)
+            n = export_zarr(store, out, progress=prog)
         except ZarrExportError as exc:
             raise ExportError(str(exc)) from None
         return ExportResult(layout=layout, out=out, images=n, files=[out])
@@ -304,7 +332,7 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
         from m2s2hil.store.export_hf import HfExportError, export_hf
 
         try:
-            result.files += export_hf(store, out, frames, rows, overwrite=overwrite)
+            result.files += export_hf(store, out, frames, rows, overwrite=overwrite, progress=prog)
         except HfExportError as exc:
             raise ExportError(str(exc)) from None
         result.images = len(frames)
@@ -329,6 +357,7 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
             write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
             result.files += [p8, p16]
             result.images += 1
+            prog.step()
         for fr, role, target in labels:  # stored as 8-bit PNG already: copied as they are, checked
             write_bytes_atomic(target, store.read_file(fr.files[role]))
             result.files.append(target)
@@ -348,7 +377,7 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
 
 
 def _export_synthetic_m2s2(store: SessionStore, out: Path, frames: list[FrameRecord], n_az: int, *,
-                           overwrite: bool) -> ExportResult:
+                           overwrite: bool, progress: Progress | None = None) -> ExportResult:
     """A synthetic session's views beside the HIL folders (module docstring)."""
     cat = load_catalog()
     base = Path("Synthetic") / cat.satellites[store.sweep.satellite].name / f"b{int(store.sweep.build[1:])}"
@@ -374,6 +403,8 @@ def _export_synthetic_m2s2(store: SessionStore, out: Path, frames: list[FrameRec
     for fr, role, target in copies:  # PNGs as stored (checksums checked on read)
         write_bytes_atomic(target, store.read_file(fr.files[role]))
         result.files.append(target)
+        if role == "rgb" and progress is not None:  # one rgb per view: a view done
+            progress.step()
     write_text_atomic(meta_csv, _csv(rows, SYNTH_COLUMNS))
     info = {**_session_json(store), "domain": "synthetic",
             "class_names": frames[0].meta.get("class_names", []),

@@ -48,6 +48,7 @@ from m2s2hil.errors import UsageError
 from m2s2hil.store.frame_files import encode_png
 
 if TYPE_CHECKING:
+    from m2s2hil.store.export import Progress
     from m2s2hil.store.records import FrameRecord
     from m2s2hil.store.session import SessionStore
 
@@ -116,7 +117,7 @@ def _value(v: Any) -> Any:
 
 
 def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: list[dict], *,
-              overwrite: bool) -> list[Path]:
+              overwrite: bool, progress: Progress | None = None) -> list[Path]:
     """Write ``data/train-<session>.parquet`` and the card (see the module docstring)."""
     require_datasets()
     from m2s2hil.store.export import LABELS_ROLE, MASK_ROLE, mosaic_png8
@@ -140,6 +141,8 @@ def export_hf(store: SessionStore, out: Path, frames: list[FrameRecord], rows: l
                     else None
             for c in features:
                 batch[c].append(ex.get(c))
+            if progress is not None:
+                progress.step()
             if len(batch["raw"]) == size or i == len(frames) - 1:
                 yield batch
                 batch = {c: [] for c in features}

@@ -27,7 +27,7 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.store.frame_files import decode_image
 
 if TYPE_CHECKING:
-    from m2s2hil.store.export import ExportResult
+    from m2s2hil.store.export import ExportResult, Progress
     from m2s2hil.store.records import FrameRecord
     from m2s2hil.store.session import SessionStore
 
@@ -39,7 +39,7 @@ def _bands(fr: FrameRecord) -> list[str]:
 
 
 def export_synthetic(store: SessionStore, out: Path, layout: str, frames: list[FrameRecord], *,
-                     overwrite: bool) -> ExportResult:
+                     overwrite: bool, progress: Progress | None = None) -> ExportResult:
     from m2s2hil.store.export import ExportError, ExportResult
 
     for fr in frames:
@@ -50,10 +50,10 @@ def export_synthetic(store: SessionStore, out: Path, layout: str, frames: list[F
         target = out / "data" / f"synthetic-{store.session_id}.parquet"
         if target.exists() and not overwrite:
             raise ExportError(f"{target} already exists; use overwrite to replace it")
-        _hf(store, out, target, frames)
+        _hf(store, out, target, frames, progress)
         return ExportResult(layout=layout, out=out, images=len(frames), files=[target, out / "README.md"])
     if layout == "zarr":
-        return ExportResult(layout=layout, out=out, images=_zarr(store, out, frames), files=[out])
+        return ExportResult(layout=layout, out=out, images=_zarr(store, out, frames, progress), files=[out])
     raise ExportError(f"unknown export layout {layout!r} for a synthetic session")
 
 
@@ -68,7 +68,8 @@ def _row(store: SessionStore, fr: FrameRecord) -> dict[str, Any]:
     }
 
 
-def _hf(store: SessionStore, out: Path, target: Path, frames: list[FrameRecord]) -> None:
+def _hf(store: SessionStore, out: Path, target: Path, frames: list[FrameRecord],
+        progress: Progress | None = None) -> None:
     from m2s2hil.store.export_hf import CARD, require_datasets, write_parquet
 
     require_datasets()
@@ -91,6 +92,8 @@ def _hf(store: SessionStore, out: Path, target: Path, frames: list[FrameRecord])
                   "mask": png(fr, MASK_ROLE), **_row(store, fr)}
             for c in features:
                 batch[c].append(ex[c])
+            if progress is not None:
+                progress.step()
             if len(batch["rgb"]) == size or i == len(frames) - 1:
                 yield batch
                 batch = {c: [] for c in features}
@@ -105,7 +108,7 @@ def _hf(store: SessionStore, out: Path, target: Path, frames: list[FrameRecord])
                                             name=out.name or str(out), full=m.full_scale))
 
 
-def _zarr(store: SessionStore, out: Path, frames: list[FrameRecord]) -> int:
+def _zarr(store: SessionStore, out: Path, frames: list[FrameRecord], progress: Progress | None = None) -> int:
     from m2s2hil.store.zarr_export import ZarrExportError, _libs
 
     xr, da, _ = _libs()
@@ -120,7 +123,10 @@ def _zarr(store: SessionStore, out: Path, frames: list[FrameRecord]) -> int:
     nb = len(_bands(frames[0]))
 
     def bands_of(event_id: str) -> np.ndarray:
-        return np.stack([load(event_id, r) for r in _bands(store.frame(event_id))])
+        out = np.stack([load(event_id, r) for r in _bands(store.frame(event_id))])
+        if progress is not None:  # once per view, as to_zarr writes it
+            progress.step()
+        return out
 
     def lazy(fn: Any, shape: tuple[int, ...], *args: str) -> Any:
         return da.stack([da.from_delayed(delayed(fn)(fr.event_id, *args), shape, np.uint8) for fr in frames])

@@ -37,6 +37,7 @@ import numpy as np
 from m2s2hil.errors import UsageError
 
 if TYPE_CHECKING:
+    from m2s2hil.store.export import Progress
     from m2s2hil.store.records import FrameRecord
     from m2s2hil.store.session import SessionStore
 
@@ -59,7 +60,8 @@ def _libs() -> tuple[Any, Any, Any]:
     return xr, da, zarr
 
 
-def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, str]) -> Any:
+def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, str],
+                    progress: Progress | None = None) -> Any:
     from dask import delayed
 
     from m2s2hil.catalog import load_catalog
@@ -69,7 +71,10 @@ def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, 
     shape = (m.height, m.width)
 
     def raw_of(event_id: str) -> np.ndarray:
-        return store.read_raw(event_id)[0]
+        raw = store.read_raw(event_id)[0]
+        if progress is not None:  # computed once per frame as to_zarr writes it (synchronous scheduler)
+            progress.step()
+        return raw
 
     def labels_of(event_id: str, role: str = "truth_labels") -> np.ndarray:
         from m2s2hil.store.frame_files import decode_image
@@ -132,9 +137,9 @@ def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, 
     return ds
 
 
-def export_zarr(store: SessionStore, out: str | Path) -> int:
+def export_zarr(store: SessionStore, out: str | Path, *, progress: Progress | None = None) -> int:
     """Write ``store``'s frames (and darks) into the Zarr store ``out`` (created, or appended
-    to); returns the number of frames written."""
+    to); returns the number of frames written. ``progress`` counts the frames as they are read."""
     xr, da, _ = _libs()
     import dask
 
@@ -156,7 +161,7 @@ def export_zarr(store: SessionStore, out: str | Path) -> int:
         old.close()
     elif out.exists() and not fresh_root:
         raise ZarrExportError(f"{out} exists and is not a Zarr store")
-    ds = _frames_dataset(store, xr, da, dark_keys)
+    ds = _frames_dataset(store, xr, da, dark_keys, progress)
     chunk = {"chunks": (1, m.height, m.width)}
     encoding = {"raw": chunk, "labels": chunk, "projected_labels": chunk}
     with dask.config.set(scheduler="synchronous"):  # one frame in memory at a time

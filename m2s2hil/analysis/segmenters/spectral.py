@@ -140,6 +140,7 @@ MIN_FIT_PIXELS = 50
 # Homogeneity angle ≥ this × the median neighbour angle: at 60 % peak that median is ≈ 1–2° and the
 # fixed 3° rules; at 4 % peak it is ≈ 6° and a fixed 3° left no pixel (then the fit fell back to all).
 NOISE_ANGLE_FACTOR = 1.5
+SPREAD_FACTOR = 1.5
 
 
 def features_of(cube: np.ndarray, features: Features = "unit") -> np.ndarray:
@@ -432,7 +433,15 @@ class SpectralSegmenter:
         clean_share = np.bincount(ids, weights=clean.ravel().astype(np.float64), minlength=n) / np.maximum(size, 1)
         noise_e = float(np.sqrt(np.sum(rel.noise[rel.bands] ** 2)))
         snr = np.linalg.norm(means, axis=1) * np.sqrt(np.maximum(size, 1)) / noise_e
+        # spread inside a superpixel (RMS angle of its pixels to its mean): one that straddles two
+        # materials spreads more than the noise; like the homogeneity test, it stays out of the fit
+        cos = np.einsum("bn,bn->n", unit[:, fg], unit_p[:, fg])
+        ang2 = np.zeros(n)
+        np.add.at(ang2, sp[fg], np.arccos(np.clip(cos, -1.0, 1.0)) ** 2)
+        spread = np.sqrt(ang2 / np.maximum(size, 1))
         good = (size > 0) & (clean_share >= 0.5) & (snr >= self.snr_min)
+        if good.sum() > 1:
+            good &= spread <= SPREAD_FACTOR * float(np.median(spread[good]))
         good[0] = False
         fit = fg & good[sp]
         first = np.zeros(n, dtype=np.int64)  # one pixel of each superpixel carries its features

@@ -239,11 +239,21 @@ def frame_bands(mg: Manager, session_id: SessionId, n: FrameN,
 @router.get("/sessions/{session_id}/coverage", responses={**NOT_FOUND, **CONFLICT})
 def session_coverage(mg: Manager, session_id: SessionId) -> dict[str, Any]:
     """Every planned pose (lighting × tilt × azimuth) with its state (captured, flagged, skipped,
-    failed, pending), QC score and flags, and the frame's index when it is stored."""
+    failed, pending), QC score and flags, and the frame's index when it is stored; with the twin,
+    a cell's ``twin_flags`` (the twin's own among its flags) and ``labels`` (it has projected labels)."""
     from m2s2hil.analysis.report.coverage import coverage
 
     with mg.reads.reading(session_id) as store:
-        return coverage(store)
+        cov = coverage(store)
+        by_n = {fr.index: fr for fr in store.frames()}
+    for c in cov["cells"]:
+        fr = by_n.get(c["n"]) if c.get("n") is not None else None
+        c["twin_flags"] = [str(f) for f in _twin_of(fr)[0].get("flags") or []] if fr else []
+        c["labels"] = bool(fr and PROJECTED in fr.files)
+    cov["twin"] = {"checked": sum(bool(fr and _twin_of(fr)[0]) for fr in by_n.values()),
+                   "flagged": sum(bool(c["twin_flags"]) for c in cov["cells"]),
+                   "labelled": sum(c["labels"] for c in cov["cells"])}
+    return cov
 
 
 # ----------------------------------------------------------------------------- calibration pictures
@@ -332,3 +342,101 @@ def phase_map(mg: Manager, console: ConsoleDep, body: cm.PhaseIn) -> Response:
     resp = _png_response(png, alt)
     resp.headers["X-Phase-Summary"] = summary.encode("ascii", "replace").decode()
     return resp
+
+
+# ----------------------------------------------------------------------------- the twin on a frame
+PROJECTED = "projected_labels"  # the twin's label map of a frame (store role; m2s2hil/twin/labels.py)
+# A colour per label index (matplotlib's tab10 without its grey, then tab20's light ones): the
+# filaments of one build are at most a handful, each told apart at a glance; 0 (background) is clear.
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf",
+           "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5", "#c49c94", "#f7b6d2", "#dbdb8d", "#9edae5")
+
+
+def _colour(k: int) -> str:
+    return PALETTE[(k - 1) % len(PALETTE)]
+
+
+def _stored_frame(store: SessionStore, session_id: str, n: int) -> FrameRecord:
+    fr = next((f for f in store.frames() if f.index == n), None)
+    if fr is None:
+        raise UnknownSession(f"session {session_id} has no frame {n} (frames are numbered by their index in "
+                             "the plan; GET /sessions/{id}/frames lists them)")
+    return fr
+
+
+def _twin_of(fr: FrameRecord) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the twin's checks, the projected labels' metadata) of a frame, each {} when absent."""
+    qc = fr.meta.get("qc")
+    qc = qc if isinstance(qc, dict) else {}
+    twin = qc.get("twin") if isinstance(qc.get("twin"), dict) else {}
+    labels = qc.get(PROJECTED) or fr.meta.get(PROJECTED)
+    return twin, labels if isinstance(labels, dict) else {}
+
+
+def _projected(store: SessionStore, session_id: str, n: int) -> tuple[np.ndarray, list[str], dict[str, Any]]:
+    from m2s2hil.store.frame_files import decode_image
+
+    fr = _stored_frame(store, session_id, n)
+    if PROJECTED not in fr.files:
+        raise UnknownSession(f"frame {n} of session {session_id} has no projected labels: the twin projects "
+                             "them once its registration has a placement (docs/twin.md)")
+    lab = np.asarray(decode_image(store.read_file(fr.files[PROJECTED])))
+    names = [str(c) for c in _twin_of(fr)[1].get("class_names") or []]
+    return lab, names, _twin_of(fr)[1]
+
+
+class LegendItem(BaseModel):
+    index: int
+    name: str
+    colour: str
+    pixels: int
+
+
+class TwinFrameOut(BaseModel):
+    flags: list[str]
+    frame_flags: list[str]
+    checked: bool
+    labels_url: str | None
+    confidence: float | None
+    legend: list[LegendItem]
+
+
+@router.get("/sessions/{session_id}/frames/{n}/twin", response_model=TwinFrameOut, responses=NOT_FOUND)
+def frame_twin(mg: Manager, session_id: SessionId, n: FrameN) -> dict[str, Any]:
+    """The twin on frame ``n``: its QC flags (``flags``: confirmed over the lighting's frames;
+    ``frame_flags``: this frame's own), and its projected labels' legend (material, colour,
+    pixels) with the overlay's URL, when the frame has them (else ``labels_url`` null)."""
+    with mg.reads.reading(session_id) as store:
+        fr = _stored_frame(store, session_id, n)
+        twin, meta = _twin_of(fr)
+        legend: list[dict[str, Any]] = []
+        url = None
+        if PROJECTED in fr.files:
+            lab, names, meta = _projected(store, session_id, n)
+            counts = np.bincount(lab.ravel(), minlength=len(names))
+            legend = [{"index": k, "name": names[k] if k < len(names) else f"label {k}", "colour": _colour(k),
+                       "pixels": int(counts[k])} for k in range(1, len(counts)) if counts[k]]
+            url = f"/sessions/{session_id}/frames/{n}/labels.png"
+    conf = meta.get("confidence")
+    return {"flags": [str(f) for f in twin.get("flags") or []],
+            "frame_flags": [str(f) for f in twin.get("frame_flags") or twin.get("flags") or []],
+            "checked": bool(twin), "labels_url": url,
+            "confidence": float(conf) if isinstance(conf, int | float) else None, "legend": legend}
+
+
+@router.get("/sessions/{session_id}/frames/{n}/labels.png", response_class=Response,
+            responses={**PNG, **NOT_FOUND})
+def frame_labels(mg: Manager, session_id: SessionId, n: FrameN) -> Response:
+    """Frame ``n``'s projected labels (the registered twin's label map at its pose) as an RGBA
+    PNG at the label map's size: a colour per material (``GET …/twin`` has the legend), the
+    background transparent; 404 when the frame has none."""
+    with mg.reads.reading(session_id) as store:
+        lab, names, _ = _projected(store, session_id, n)
+    lut = np.zeros((256, 4), np.uint8)
+    for k in range(1, 256):
+        h = _colour(k)
+        lut[k] = (int(h[5:7], 16), int(h[3:5], 16), int(h[1:3], 16), 255)  # BGRA for OpenCV
+    ok, buf = cv2.imencode(".png", lut[lab.astype(np.uint8)])
+    present = [names[k] if k < len(names) else f"label {k}" for k in np.unique(lab) if k]
+    return _png_response(buf.tobytes() if ok else b"",
+                         f"projected labels of frame {n}: {', '.join(present) or 'background only'}")
