@@ -270,6 +270,8 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
                                f"{d.idx['flagged']}')")
         # the centre cell's spectrum comes at once; a click elsewhere asks for that cell
         page.wait_for_function("window.m2s2hilPictures.fv.region !== null")
+        assert page.locator("#b-coverage path.cov-twin").count() == 1
+        page.wait_for_selector("#fv-labels:not([disabled])")
         box = page.locator("#fv-canvas").bounding_box()
         assert box is not None
         page.mouse.click(box["x"] + box["width"] / 2 - 0.45 * min(box["width"], box["height"]) + 4,
@@ -277,6 +279,14 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
         page.wait_for_function("window.m2s2hilPictures.fv.region.x === 0")
         label = page.locator("#fv-spectrum canvas").get_attribute("aria-label")
         assert label is not None and "431 nm 148.0 DN" in label  # frame 1's top-left: 100 + 1 + 50 − 3
+        # the twin on the same views: its flag on the coverage cell, its flags and labels in the viewer
+        twin = page.locator("#fv-twin").inner_text()
+        assert "twin ⚑ off_axis" in twin and "gold_foil" in twin and "solar_panel" in twin, twin
+        assert page.evaluate("window.m2s2hilPictures.fv.labels.naturalWidth") == N // 4
+        assert page.is_checked("#fv-labels")
+        page.uncheck("#fv-labels")
+        assert page.evaluate("localStorage.getItem('m2s2hil.fv.labels')") == "0"
+        page.check("#fv-labels")
         # zoom with the wheel, then reset
         page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
         page.mouse.wheel(0, -400)
@@ -293,6 +303,19 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
         page.wait_for_function("window.m2s2hilPictures.fv.bandsGeom !== null")
         shot(page, "console_ten_bands.png")
         page.click("#fv-close")
+        # the export's progress bar (what console.js's export loop shows for each polled job)
+        bar = page.evaluate("""() => { const d = document.createElement('div');
+            exportProgress(d, {fraction: 0.4, done: 2, total: 5});
+            return [d.querySelector('progress').value, d.textContent]; }""")
+        assert bar[0] == pytest.approx(0.4) and "40% · 2 of 5 frames" in bar[1], bar
+        # the session-end sound: a labelled checkbox, on by default, remembered; no tone when off
+        assert page.locator("label", has=page.locator("#sound-on")).inner_text().strip() == "sound"
+        assert page.is_checked("#sound-on")
+        played = page.evaluate("chime(false)")  # the page has had clicks: audio is unlocked if it can be
+        page.uncheck("#sound-on")
+        assert page.evaluate("[localStorage.getItem('m2s2hil.sound'), chime(false)]") == ["0", False]
+        page.check("#sound-on")
+        print(f"sound: tone played after a gesture in headless Chromium: {played}")
         # the live view: a click on the image gives the live spectrum
         page.click("#tabs button[data-view='setup']")
         page.click("#live-toggle")

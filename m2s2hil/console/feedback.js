@@ -25,6 +25,7 @@ function notifyEnd(sid, st) {
   const text = `session ${sid} ${st.replaceAll("_", " ")}`;
   document.title = `${ENDED[st] ?? "•"} ${st} — ${BASE_TITLE}`;
   announce(text);
+  chime(bad);
   if ("Notification" in window && Notification.permission === "granted" && document.hidden) {
     new Notification("m2s2hil: " + text);  // (a background tab; in view, the toast says it)
   } else toast(text, bad);
@@ -44,6 +45,45 @@ new MutationObserver(() => {
   if (sid === lastRun.id && st !== lastRun.state && lastRun.state && !ENDED[lastRun.state] && ENDED[st]) notifyEnd(sid, st);
   lastRun = { id: sid, state: st };
 }).observe($("run-state"), { childList: true, characterData: true, subtree: true });
+
+// ------------------------------------------------------------------ sound
+// A short tone with the session-end notice (WebAudio, no file to fetch). Browsers let a page make
+// sound only after a user gesture (autoplay policy): the audio context is made, or resumed, on the
+// operator's first click or key in the page; until then, or with "sound" unchecked, no tone.
+// The checkbox sits by the watched session's state, on by default, remembered (localStorage).
+const sound = { ctx: null, played: 0 };
+{
+  const lab = el("label"); lab.title = "a short tone when the watched session ends or fails";
+  const cb = el("input"); cb.type = "checkbox"; cb.id = "sound-on";
+  cb.checked = localStorage.getItem("m2s2hil.sound") !== "0";
+  cb.addEventListener("change", () => localStorage.setItem("m2s2hil.sound", cb.checked ? "1" : "0"));
+  lab.append(cb, document.createTextNode(" sound"));
+  $("run-state").after(document.createTextNode(" "), lab);
+}
+function unlockAudio() {
+  const AC = window.AudioContext || window.webkitAudioContext;
+  if (!AC || !$("sound-on").checked) return;
+  try {
+    if (!sound.ctx) sound.ctx = new AC();
+    if (sound.ctx.state === "suspended") sound.ctx.resume().catch(() => {});
+  } catch (e) { sound.ctx = null; }  // no audio device: the notice stays silent
+}
+document.addEventListener("pointerdown", unlockAudio, true);
+document.addEventListener("keydown", unlockAudio, true);
+// Two notes, rising when the session completed, falling otherwise; 0.4 s, quiet. True if played.
+function chime(bad) {
+  const c = sound.ctx;
+  if (!$("sound-on").checked || !c || c.state !== "running") return false;
+  const t = c.currentTime, o = c.createOscillator(), g = c.createGain();
+  o.type = "sine";
+  o.frequency.setValueAtTime(bad ? 660 : 880, t); o.frequency.setValueAtTime(bad ? 440 : 1320, t + 0.15);
+  g.gain.setValueAtTime(0.0001, t); g.gain.exponentialRampToValueAtTime(0.15, t + 0.02);
+  g.gain.exponentialRampToValueAtTime(0.0001, t + 0.38);
+  o.connect(g).connect(c.destination); o.start(t); o.stop(t + 0.4);
+  sound.played += 1;
+  return true;
+}
+window.m2s2hilSound = sound;
 
 // ------------------------------------------------------------------ export progress
 // console.js's export loop calls this with each job it polls (GET /exports/jobs/{id}: done, total,

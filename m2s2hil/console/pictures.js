@@ -210,7 +210,7 @@ const pictures = (() => {
     const side = mk("div", { class: "pic-side", id: "fv-spectrum" });
     body.append(stage, side);
     const info = mk("div", { class: "muted", id: "fv-info" });
-    const twin = mk("div", { class: "row muted pic-legend", id: "fv-twin", "aria-live": "polite" });
+    const twin = mk("div", { class: "row muted pic-legend", id: "fv-twin", "aria-live": "polite", style: "min-height:1.5em" });
     card.append(bar, info, twin, body); ov.append(card); document.body.append(ov);
     fv.panel = spectrumPanel(side, "Spectrum");
     mode.addEventListener("change", () => { fv.mode = mode.value; loadImage(); });

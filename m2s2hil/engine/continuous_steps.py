@@ -1,7 +1,9 @@
 """Continuous capture: the steps for ``mode = "continuous"``, one pass per lighting condition and tilt.
 
 Per pass the lamps of the condition go on and the tilt moves; with auto exposure the
-condition is metered at the pass's first mark; then the turntable turns at ω while the
+condition is metered at the pass's first mark; the turntable goes to the run-up's start while
+the tilt settles and the lamps warm, and starts its run-up early enough that the first frame
+a mark can take begins just as both are done (never before); then it turns at ω while the
 camera streams, and the frame nearest each azimuth mark (by timestamp and read-back) is
 kept (the matching is :func:`m2s2hil.engine.marks.run_pass`). Blur ω·t_exp is recorded per
 frame (``meta["continuous"]``) and per pass (journal event ``continuous_pass``).

@@ -34,7 +34,7 @@ from m2s2hil.analysis.errors import AnalysisInputError
 PLATEAU_REL_TOL = 0.004  # a clipped band: values within 0.4 % of its maximum (≈ 4 DN on 10 bits)
 PLATEAU_MIN_PIXELS = 20
 PLATEAU_MIN_FRACTION = 0.002  # of the foreground: a natural tail puts far fewer pixels that close
-MAX_CLIPPED_FRACTION = 0.3  # a band clipped on more of the foreground is left out of the features
+MIN_UNCLIPPED = 0.5  # share of the foreground unclipped in every kept band (else bands go)
 MIN_BANDS = 3
 
 
@@ -129,10 +129,16 @@ def reliability(
     clipped = clipped_bands(cube, fg)
     n_fg = max(int(fg.sum()), 1)
     frac = clipped[:, fg].sum(axis=1) / n_fg
-    keep = frac <= MAX_CLIPPED_FRACTION
-    if int(keep.sum()) < min(MIN_BANDS, n_bands):  # keep at least the least-clipped few
-        keep = np.zeros(n_bands, dtype=bool)
-        keep[np.argsort(frac, kind="stable")[: min(MIN_BANDS, n_bands)]] = True
+    keep = np.ones(n_bands, dtype=bool)
+    # every band stays (a clipped value is masked per pixel, in the fit and in relabel_saturated)
+    # while ≥ MIN_UNCLIPPED of the foreground is unclipped in all of them; else the most clipped
+    # bands go, one at a time (dropping every band clipped on > 30 % lost materials at 150 % peak)
+    for b in np.argsort(-frac, kind="stable"):
+        if frac[b] == 0 or int(keep.sum()) <= min(MIN_BANDS, n_bands):
+            break
+        if 1.0 - clipped[keep][:, fg].any(axis=0).mean() >= MIN_UNCLIPPED:
+            break
+        keep[b] = False
     bands = np.flatnonzero(keep)
     sat = clipped[bands].any(axis=0)
     if saturated is not None:

@@ -254,7 +254,7 @@ class SpectralSegmenter:
         snr_min: float = 10.0,
         white: object | None = None,
         pool_target_deg: float = 2.0,
-        merge_noise: float = 2.0,
+        merge_noise: float = 0.0,
     ) -> None:
         if not 1 <= min_materials <= max_materials:
             raise AnalysisInputError(
