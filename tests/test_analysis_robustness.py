@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.segmenters.normalise import PLATEAU_REL_TOL, clipped_bands, normalise_cube, reliability
+from m2s2hil.analysis.segmenters.normalise import (
+    PLATEAU_REL_TOL,
+    clipped_bands,
+    normalise_cube,
+    pool_size,
+    reliability,
+    superpixel_means,
+)
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, foreground_mask
 from m2s2hil.analysis.study.simframes import simulated_frames, visible_materials
 from m2s2hil.analysis.study.synthetic import exposed_scene
@@ -86,3 +93,37 @@ def test_white_reference_and_exposure_normalisation():
         normalise_cube(cube, white=np.ones(3))
     with pytest.raises(AnalysisInputError):
         SpectralSegmenter(snr_min=-1)
+
+
+def test_pool_size_follows_the_measured_noise():
+    assert pool_size(8.0, 2.0) == 16 and pool_size(1.5, 2.0) == 1 and pool_size(float("nan"), 2.0) == 1
+    cube = np.arange(2 * 2 * 3, dtype=np.float64).reshape(2, 2, 3)
+    seg = np.array([[0, 1, 1], [2, 2, 1]])
+    means = superpixel_means(cube, seg)
+    np.testing.assert_allclose(means[1], [(1 + 2 + 5) / 3, (7 + 8 + 11) / 3])
+    np.testing.assert_allclose(means[2], [(3 + 4) / 2, (9 + 10) / 2])
+
+
+def test_dim_cube_is_pooled_into_superpixels_and_the_reference_is_not():
+    dim, _ = exposed_scene(0.02, (96, 96), 3)
+    result = SpectralSegmenter().analyse(dim)
+    assert result.pooled > 1 and result.n_materials == 3
+    assert SpectralSegmenter(pool_target_deg=0).analyse(dim).pooled == 1
+    bright, _ = exposed_scene(0.6, (96, 96), 3)
+    assert SpectralSegmenter().analyse(bright).pooled == 1  # noise below the target: per pixel
+
+
+def test_clipped_bands_stay_with_a_per_pixel_mask():
+    cube, _ = exposed_scene(1.5, (64, 64), 3)
+    fg, _ = foreground_mask(cube, "backdrop")
+    rel = reliability(cube, fg)
+    assert rel.saturated.any() and list(rel.bands) == list(range(cube.shape[0]))
+    # a band clipped on (nearly) the whole object leaves too little unclipped: it goes
+    flat = cube.copy()
+    flat[0][fg] = 1000.0
+    gone = reliability(flat, fg)
+    assert 0 not in gone.bands and len(gone.bands) == cube.shape[0] - 1
+    with pytest.raises(AnalysisInputError):
+        SpectralSegmenter(merge_noise=-1)
+    with pytest.raises(AnalysisInputError):
+        SpectralSegmenter(pool_target_deg=-1)

@@ -309,13 +309,14 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
             return [d.querySelector('progress').value, d.textContent]; }""")
         assert bar[0] == pytest.approx(0.4) and "40% · 2 of 5 frames" in bar[1], bar
         # the session-end sound: a labelled checkbox, on by default, remembered; no tone when off
-        page.click("#tabs button[data-view='sessions']")  # it sits by the watched session's state
+        page.click("#tabs button[data-view='sessions']")  # it sits under "Running"
         assert page.locator("label", has=page.locator("#sound-on")).inner_text().strip() == "sound"
         assert page.is_checked("#sound-on")
         played = page.evaluate("chime(false)")  # the page has had clicks: audio is unlocked if it can be
         page.uncheck("#sound-on")
         assert page.evaluate("[localStorage.getItem('m2s2hil.sound'), chime(false)]") == ["0", False]
         page.check("#sound-on")
+        assert page.evaluate("window.m2s2hilSound.ctx !== null")  # made by the first gesture
         print(f"sound: tone played after a gesture in headless Chromium: {played}")
         # the live view: a click on the image gives the live spectrum
         page.click("#tabs button[data-view='setup']")

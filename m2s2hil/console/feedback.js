@@ -50,7 +50,7 @@ new MutationObserver(() => {
 // A short tone with the session-end notice (WebAudio, no file to fetch). Browsers let a page make
 // sound only after a user gesture (autoplay policy): the audio context is made, or resumed, on the
 // operator's first click or key in the page; until then, or with "sound" unchecked, no tone.
-// The checkbox sits by the watched session's state, on by default, remembered (localStorage).
+// The checkbox sits under "Running" (Sessions view), on by default, remembered (localStorage).
 const sound = { ctx: null, played: 0 };
 {
   const lab = el("label"); lab.title = "a short tone when the watched session ends or fails";
@@ -58,7 +58,8 @@ const sound = { ctx: null, played: 0 };
   cb.checked = localStorage.getItem("m2s2hil.sound") !== "0";
   cb.addEventListener("change", () => localStorage.setItem("m2s2hil.sound", cb.checked ? "1" : "0"));
   lab.append(cb, document.createTextNode(" sound"));
-  $("run-state").after(document.createTextNode(" "), lab);
+  lab.id = "sound-label"; lab.className = "sound-toggle";
+  $("run-none").before(lab);  // under "Running": set before a session is watched, too
 }
 function unlockAudio() {
   const AC = window.AudioContext || window.webkitAudioContext;

@@ -275,7 +275,7 @@ const pictures = (() => {
       parts.push(mk("span", {}, "labels" + (t.confidence != null ? ` (confidence ${t.confidence.toFixed(2)})` : "") + ":"));
       for (const it of t.legend) {
         const sw = mk("span", { class: "cov-swatch", style: `background:${it.colour}`, "aria-hidden": "true" });
-        const item = mk("span", { class: "fv-legend-item", "data-index": String(it.index) }); item.append(sw, document.createTextNode(it.name));
+        const item = mk("span", { class: "fv-legend-item", "data-index": String(it.index) }); item.append(sw, document.createTextNode("\u00a0" + it.name + " "));
         parts.push(item);
       }
       try {

@@ -34,7 +34,7 @@ from m2s2hil.analysis.errors import AnalysisInputError
 PLATEAU_REL_TOL = 0.004  # a clipped band: values within 0.4 % of its maximum (≈ 4 DN on 10 bits)
 PLATEAU_MIN_PIXELS = 20
 PLATEAU_MIN_FRACTION = 0.002  # of the foreground: a natural tail puts far fewer pixels that close
-MIN_UNCLIPPED = 0.5  # share of the foreground unclipped in every kept band (else bands go)
+MIN_UNCLIPPED = 0.05  # share of the foreground unclipped in every kept band (else bands go)
 MIN_BANDS = 3
 
 

@@ -106,6 +106,7 @@ class SpectralSegmentation:
     unreliable: np.ndarray | None = None  # bool (H, W): saturated or near-black, kept out of the fit
     bands: tuple[int, ...] = ()  # bands the features used (clipped bands left out); () = all
     fit: np.ndarray | None = None  # bool (H, W): the pixels the mixture was fitted on
+    pooled: int = 1  # pixels per superpixel the cube was averaged over before the fit (1 = none)
 
 
 ForegroundRule = Literal["backdrop", "otsu"]
@@ -307,9 +308,11 @@ class SpectralSegmenter:
         if not snr_min >= 0:
             raise AnalysisInputError("snr_min", f"must be ≥ 0, got {snr_min}")
         if not pool_target_deg >= 0:
-            raise AnalysisInputError("pool_target_deg", f"must be ≥ 0 (0 = no pooling), got {pool_target_deg}")
+            problem = f"must be ≥ 0 (0 = no pooling), got {pool_target_deg}"
+            raise AnalysisInputError("pool_target_deg", problem)
         if not merge_noise >= 0:
-            raise AnalysisInputError("merge_noise", f"must be ≥ 0 (0 = fixed merge angle), got {merge_noise}")
+            problem = f"must be ≥ 0 (0 = the fixed merge angle), got {merge_noise}"
+            raise AnalysisInputError("merge_noise", problem)
         self.pool_target_deg = float(pool_target_deg)
         self.merge_noise = float(merge_noise)
         self.robust = bool(robust)
@@ -425,12 +428,14 @@ class SpectralSegmenter:
         energy_p = np.linalg.norm(out, axis=0)
         feats = unit_p
         if self.brightness_weight > 0:
-            feats = np.concatenate([unit_p, self.brightness_weight * np.log(np.maximum(energy_p, 1e-12))[None]])
+            log_e = np.log(np.maximum(energy_p, 1e-12))[np.newaxis]
+            feats = np.concatenate([unit_p, self.brightness_weight * log_e])
         ids = sp.ravel()
         n = int(sp.max()) + 1
         size = np.bincount(ids, minlength=n)
         clean = ndimage.binary_erosion(fg) & ~rel.saturated
-        clean_share = np.bincount(ids, weights=clean.ravel().astype(np.float64), minlength=n) / np.maximum(size, 1)
+        clean_n = np.bincount(ids, weights=clean.ravel().astype(np.float64), minlength=n)
+        clean_share = clean_n / np.maximum(size, 1)
         noise_e = float(np.sqrt(np.sum(rel.noise[rel.bands] ** 2)))
         snr = np.linalg.norm(means, axis=1) * np.sqrt(np.maximum(size, 1)) / noise_e
         # spread inside a superpixel (RMS angle of its pixels to its mean): one that straddles two
@@ -505,9 +510,11 @@ class SpectralSegmenter:
             if self.pool_target_deg > 0:
                 per = pool_size(noise_deg, self.pool_target_deg)
         if per > 1 and rel is not None:
-            arr, unit, energy, feats, fit, pooled = self._pool(arr, unit, fg, rel, per)
+            pooled_cube = self._pool(arr, unit, fg, rel, per)
+            if pooled_cube[-1].shape[0] >= MIN_FIT_PIXELS:  # else too few superpixels: per pixel
+                arr, unit, energy, feats, fit, pooled = pooled_cube
         spectra = feats[:, fg].T  # (n_fg, features)
-        if pooled is not None:
+        if pooled is not None:  # the fit pixels were chosen per superpixel
             pass
         elif self.fit_pixels == "all":
             fit = fg
@@ -517,17 +524,13 @@ class SpectralSegmenter:
                 ref = float(np.median(energy[fg]))
                 scale = np.sqrt(np.maximum(ref / np.maximum(energy, 1e-12), 1.0))
             angle = self.homogeneity_deg
-            if rel is not None:  # the test's angle follows the cube's own noise (low exposure)
-                if np.isfinite(noise_deg):
-                    angle = min(max(angle, NOISE_ANGLE_FACTOR * noise_deg), 45.0)
+            if rel is not None and np.isfinite(noise_deg):  # the angle follows the cube's noise
+                angle = min(max(angle, NOISE_ANGLE_FACTOR * noise_deg), 45.0)
             fit = homogeneous_pixels(unit, fg, angle, scale)
         if rel is not None and pooled is None:
             fit = fit & ~rel.unreliable
             if int(fit.sum()) < MIN_FIT_PIXELS:
                 fit = fg & ~rel.unreliable
-        if pooled is not None and pooled.shape[0] < MIN_FIT_PIXELS:  # too few superpixels: every pixel
-            pooled = None
-            fit = fg
         if pooled is None and int(fit.sum()) < MIN_FIT_PIXELS:  # too few clean pixels: use them all
             fit = fg
         pool = feats[:, fit].T if pooled is None else pooled
@@ -578,4 +581,4 @@ class SpectralSegmenter:
         if rel is None:
             return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)
         return SpectralSegmentation(labels, n_used, threshold, bic, n_fg, rel.unreliable,
-                                    tuple(int(b) for b in rel.bands), fit)
+                                    tuple(int(b) for b in rel.bands), fit, per if pooled is not None else 1)
