@@ -32,6 +32,7 @@ def test_an_operator_action_is_logged_with_who_and_from_where(d) -> None:
     refused = d.client.put("/rig/lamps", json={"lamps": ["nope"]}, headers=tab("tab-a"))
     assert refused.status_code == 422
     d.client.get("/rig/axes", headers=tab("tab-b"))  # a viewer: seen, not an action
+    d.client.post("/plans/estimate", json=sweep(), headers=tab("tab-b"))  # computes only: not an action
     page = d.client.get("/activity", params={"since": since, "kind": "action"}).json()
     ok, bad = page["items"]
     assert ok["message"].startswith("lamps on: bar1, bar2, bar3") and "PUT /rig/lamps → 200" in ok["message"]

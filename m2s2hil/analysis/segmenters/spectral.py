@@ -10,9 +10,11 @@ materials", has the comparison that chose them):
    median + 6 robust SDs (``foreground_mask``) — with a bright object Otsu's cut can fall above a
    dark material and hand it to the background. ``"otsu"``: Otsu alone (the old rule). A cube
    with constant energy has no foreground and comes back all background.
-1b. Reliability (``robust=True``, default since issue 23; ``segmenters.normalise``): bands clipped
-   on more than 30 % of the foreground are left out of the features; pixels clipped in a used
-   band (a plateau at the band's maximum, or the processor's ``saturated`` mask given to
+1b. Reliability (``robust=True``, default since issue 23; ``segmenters.normalise``): every band
+   stays in the features while ≥ 5 % of the foreground is unclipped in all of them (else the most
+   clipped go, one at a time; dropping every band clipped on > 30 % lost six of Voyager B3's
+   eight materials at 150 % peak); pixels clipped in a used band (a plateau at the band's
+   maximum, or the processor's ``saturated`` mask given to
    ``analyse``) and near-black pixels (energy < ``snr_min`` (10) × the backdrop's noise floor) are
    *unreliable*: out of the fit and of model selection, then labelled — near-black pixels by the
    mixture's posterior like any other, saturated ones by the nearest material mean in spectral
@@ -22,6 +24,13 @@ materials", has the comparison that chose them):
    none passed at 4 % peak and the fit fell back to every pixel, which over-splits). ``white``
    (per band) divides the cube by the white reference first. ``robust=False``: the issue-15
    segmenter, unchanged.
+1c. Pooling (robust only): where the median neighbour angle exceeds ``pool_target_deg`` (2°, about
+   its value at the 60 %-peak reference, so the reference is not pooled) the cube is averaged over
+   SLICO superpixels of n = ⌈(angle / 2°)²⌉ pixels (the mean of n spectra has 1/√n of the noise),
+   and the fit takes one sample per superpixel — pooled pixels are correlated, superpixel means
+   are not, so BIC's sample count stays honest. Superpixels mostly on the rim or clipped, still
+   near-black, or spread inside more than ``SPREAD_FACTOR`` × the median (two materials) are out
+   of the fit. Fewer than 50 usable superpixels: no pooling.
 2. Features: each spectrum divided by its norm (unit length: spectral angle, shape not
    brightness) or ``features="log-chromaticity"``; plus, with ``brightness_weight`` w > 0
    (default 0.1), w·log e as one more coordinate — an albedo cue: achromatic materials (silver,
@@ -41,7 +50,9 @@ materials", has the comparison that chose them):
    components end with ~0 weight. ``n_materials`` fixes the count (``for_build``: from the
    catalog, named ``spectral-catalog-k``). A single-band cube: the foreground is one material.
 5. Clean-up: components whose unit mean spectra (brightness coordinate left out) lie within
-   ``merge_angle_deg`` (1.5°) merge (transitively); groups under ``min_material_fraction``
+   ``merge_angle_deg`` (1.5°) merge (transitively) — or, with ``merge_noise`` k > 0 (robust only;
+   off by default: at the reference it merged real materials), within k × the angle two samples
+   of one spectrum differ by at the components' brightness; groups under ``min_material_fraction``
    (0.2 %) of the weight are dropped; every foreground pixel goes to the group with the largest
    summed posterior. Groups are numbered 1..n by decreasing pixel count (ties by first
    component index), so ids are reproducible.
@@ -54,11 +65,12 @@ is pure overhead; on a busy 2-core machine it made the BIC sweep ten times slowe
 (1.65 s vs 0.17 s for six fits on 20k pixels). ``None`` leaves the library default.
 
 Known limits (robustness: docs/evaluation.md, "Robustness to exposure, clipping and light"):
-below ~10 % peak and above ~150 % the multi-material builds lose materials (too little shape
-left); the brightness coordinate separates dark grey from silver, but silver and cold
-white (close in both shape and brightness) can still merge; materials that cover only a few
-pixels have no homogeneous interior and are found only if their spectra stand out. The
-defaults were chosen on the simulator's frames (docs/evaluation.md), not on real captures.
+below ~10 % peak the multi-material builds still lose materials (pooling recovers some) and
+above ~150 % clipping still splits some; the brightness coordinate separates dark grey from
+silver, but silver and cold white (close in both shape and brightness) can still merge;
+materials that cover only a few pixels have no homogeneous interior and are found only if
+their spectra stand out. The defaults were chosen on the simulator's frames (docs/evaluation.md),
+not on real captures.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 
 Every request passes :class:`ActivityRecorder` once it has passed the Host and cross-site guards:
 the client is counted as connected (:meth:`ActivityLog.seen`), and a request that changes
-something (any method but GET, HEAD, OPTIONS) becomes an ``action`` entry with its method, path,
+something (any method but GET, HEAD, OPTIONS; a POST that only computes, such as
+``/plans/estimate``, does not count) becomes an ``action`` entry with its method, path,
 status and actor. A route may say what it did in words (``request.state.activity``, e.g.
 ``turntable jog +1° → 11°``). Who: the ``X-M2S2HIL-Client`` header when the client sends one
 (the console sends one id per tab; an id is ``[A-Za-z0-9._-]``, at most 64 characters, anything
@@ -30,6 +31,8 @@ router = APIRouter(tags=["activity"])
 CLIENT_HEADER = "X-M2S2HIL-Client"
 _CLIENT_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 _READ_ONLY = frozenset({"GET", "HEAD", "OPTIONS"})
+# POSTs that change nothing (the session form asks for an estimate on every edit): seen, not logged
+_READ_ONLY_POSTS = frozenset({"/plans/estimate"})
 Kind = Literal["action", "fault", "retry", "state", "session", "queue", "daemon"]
 
 
@@ -68,7 +71,7 @@ class ActivityRecorder:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
         actor = actor_of(headers, scope.get("client"), scope["app"].state.token)
         method = scope["method"]
-        if method in _READ_ONLY:
+        if method in _READ_ONLY or scope.get("path") in _READ_ONLY_POSTS:
             log.seen(actor)
             await self.app(scope, receive, send)
             return
