@@ -210,7 +210,8 @@ const pictures = (() => {
     const side = mk("div", { class: "pic-side", id: "fv-spectrum" });
     body.append(stage, side);
     const info = mk("div", { class: "muted", id: "fv-info" });
-    const twin = mk("div", { class: "row muted pic-legend", id: "fv-twin", "aria-live": "polite", style: "min-height:1.5em" });
+    const twin = mk("div", { class: "row muted pic-legend", id: "fv-twin", "aria-live": "polite" });
+    twin.style.minHeight = "1.5em";  // (CSSOM: the page's CSP refuses style attributes)
     card.append(bar, info, twin, body); ov.append(card); document.body.append(ov);
     fv.panel = spectrumPanel(side, "Spectrum");
     mode.addEventListener("change", () => { fv.mode = mode.value; loadImage(); });
@@ -274,7 +275,7 @@ const pictures = (() => {
     if (t.labels_url) {
       parts.push(mk("span", {}, "labels" + (t.confidence != null ? ` (confidence ${t.confidence.toFixed(2)})` : "") + ":"));
       for (const it of t.legend) {
-        const sw = mk("span", { class: "cov-swatch", style: `background:${it.colour}`, "aria-hidden": "true" });
+        const sw = mk("span", { class: "cov-swatch", "aria-hidden": "true" }); sw.style.background = it.colour;
         const item = mk("span", { class: "fv-legend-item", "data-index": String(it.index) }); item.append(sw, document.createTextNode("\u00a0" + it.name + " "));
         parts.push(item);
       }
@@ -491,7 +492,7 @@ const pictures = (() => {
       const sw = mk("span", { class: "cov-swatch cov-" + s }); legend.append(mk("span", {}, ""), sw, document.createTextNode(`${STATE_TEXT[s]} ${cov.counts[s]}`));
     }
     if (cov.twin && cov.twin.checked) {
-      const sw = mk("span", { class: "cov-swatch", style: "background:#e0249a" });
+      const sw = mk("span", { class: "cov-swatch" }); sw.style.background = "#e0249a";
       legend.append(mk("span", {}, ""), sw, document.createTextNode(`twin flagged ${cov.twin.flagged} · labelled ${cov.twin.labelled}`));
     }
     box.replaceChildren(...frag, legend);

@@ -89,7 +89,8 @@ class ExportJobs:
                            f"{running.job_id}): one export job at a time, wait for it to finish")
         busy = self._mg.busy.start(f"export:{session_id}:{layout}", f"the {layout} export of {session_id}")
         job = ExportJob(secrets.token_hex(6), session_id, layout, overwrite, frames=frames)
-        busy.detail["job_id"] = job.job_id
+        # the keys are there from the start: GET /busy may serialise the dict while progress updates it
+        busy.detail.update(job_id=job.job_id, done=0, total=frames, fraction=0.0)
         with self._lock:
             self._jobs[job.job_id] = job
             while len(self._jobs) > KEEP:
@@ -109,7 +110,7 @@ class ExportJobs:
             job.phase = "exporting"
             with self._mg.reads.reading(job.session_id) as store:
                 res = export_once(store, out, job.layout, overwrite=job.overwrite, fresh=job.overwrite,
-                                  progress=job.progress)
+                                  progress=lambda k, n: self._progress(job, busy, k, n))
             job.result = {"folder": str(out), "images": res.images, "files": len(res.files)}
             job.state = job.phase = "done"
             self._mg.activity.record("action", f"export {job.layout} of {job.session_id} done: {res.images} "
@@ -127,6 +128,11 @@ class ExportJobs:
         finally:
             job.finished, job._t1 = time.time(), time.monotonic()
             self._mg.busy.end(busy)
+
+    @staticmethod
+    def _progress(job: ExportJob, busy: Any, done: int, total: int) -> None:
+        job.progress(done, total)
+        busy.detail.update(done=done, total=total, fraction=job.fraction)  # /busy shows it too
 
     def get(self, job_id: str) -> ExportJob | None:
         with self._lock:
