@@ -19,6 +19,7 @@ behaviour:
 
 from __future__ import annotations
 
+import importlib
 import sys
 import types
 from typing import Any
@@ -74,8 +75,11 @@ def batched_nms(boxes: Any, scores: Any, idxs: Any, iou_threshold: float) -> Any
 
 
 def ensure_torchvision() -> str:
-    """``"torchvision"`` when the real one imports with its box ops, else installs the stand-in
-    (only the names segment-anything imports) and returns ``"stand-in"``."""
+    """Import segment-anything: ``"torchvision"`` when the real torchvision imports with its box
+    ops, else ``"stand-in"``: segment-anything is imported with the stand-in in place (only the
+    names it imports at module level), and the stand-in is then taken out of ``sys.modules``
+    again, so that other libraries probing for torchvision (``datasets`` calls
+    ``importlib.util.find_spec``) see none rather than a module without a spec."""
     try:
         from torchvision.ops.boxes import batched_nms as _real  # noqa: F401
         from torchvision.transforms.functional import resize as _resize  # noqa: F401
@@ -93,7 +97,15 @@ def ensure_torchvision() -> str:
     functional.resize, functional.to_pil_image = resize, to_pil_image  # type: ignore[attr-defined]
     root.ops, ops.boxes = ops, boxes  # type: ignore[attr-defined]
     root.transforms, transforms.functional = transforms, functional  # type: ignore[attr-defined]
-    sys.modules.update({"torchvision": root, "torchvision.ops": ops, "torchvision.ops.boxes": boxes,
-                        "torchvision.transforms": transforms,
-                        "torchvision.transforms.functional": functional})
+    shim = {"torchvision": root, "torchvision.ops": ops, "torchvision.ops.boxes": boxes,
+            "torchvision.transforms": transforms, "torchvision.transforms.functional": functional}
+    sys.modules.update(shim)
+    try:
+        importlib.import_module("segment_anything")  # binds the stand-in's functions at import
+    except ModuleNotFoundError as e:
+        if e.name != "segment_anything":
+            raise  # without segment-anything the callers' own import says so
+    finally:
+        for name in shim:
+            sys.modules.pop(name, None)
     return "stand-in"
