@@ -132,3 +132,12 @@ def load_catalog() -> Catalog:
     synthetic = {k: Elevation(key=k, **v) for k, v in raw.get("synthetic_elevations", {}).items()}
     return Catalog(materials=materials, satellites=sats, lighting=lighting, elevations=elevations,
                    synthetic_elevations=synthetic)
+
+
+def satellite_key(name: str) -> str:
+    """The catalog key of satellite ``name`` (aliases accepted) for a pydantic validator: an
+    unknown name raises ``ValueError`` with the catalog's message (known names, a hint)."""
+    try:
+        return load_catalog().satellite(name).key
+    except CatalogError as exc:
+        raise ValueError(str(exc)) from None

@@ -204,13 +204,9 @@ class MountSettings(_Model):
     def _known_satellite(cls, v: str | None) -> str | None:
         if v is None:
             return v
-        from m2s2hil.catalog import load_catalog
-        from m2s2hil.errors import CatalogError
+        from m2s2hil.catalog import satellite_key
 
-        try:
-            return load_catalog().satellite(v).key
-        except CatalogError as exc:
-            raise ValueError(str(exc)) from None
+        return satellite_key(v)
 
     @field_validator("build")
     @classmethod

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 
-from m2s2hil.catalog import load_catalog
+from m2s2hil.catalog import load_catalog, satellite_key
 from m2s2hil.config import RigConfig
 from m2s2hil.errors import CatalogError, validation_problem
 from m2s2hil.plan.estimate import PlanEstimate, estimate, estimate_continuous
@@ -62,10 +62,7 @@ class Sweep(PlanModel):
     @field_validator("satellite")
     @classmethod
     def _sat(cls, v: str) -> str:
-        try:
-            return load_catalog().satellite(v).key
-        except CatalogError as exc:
-            raise ValueError(str(exc)) from None
+        return satellite_key(v)
 
     @field_validator("build")
     @classmethod
