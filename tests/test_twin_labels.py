@@ -3,6 +3,8 @@ against the simulator's truth on a rig with the mockup misplaced."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import twin_support
@@ -10,7 +12,7 @@ import twin_support
 from m2s2hil.twin.labels import label_iou, projected_labels
 from m2s2hil.twin.projection import NOMINAL, TwinCamera
 from m2s2hil.twin.registration import Registration
-from m2s2hil.twin.simulated import rig_with
+from m2s2hil.twin.simulated import SimBench, rig_with
 
 
 def test_projected_labels_match_the_truth_once_registered() -> None:
@@ -89,3 +91,44 @@ def test_hil_frames_are_scored_against_the_projected_labels_and_table2_shows_the
     md = to_markdown([row])
     assert "HIL Dice" in md.splitlines()[0] and "projected labels" in md
     assert "hil_recall_n" in to_csv([row]).splitlines()[0]
+
+
+def test_labels_at_the_true_placement_are_the_simulators_truth() -> None:
+    """The twin projects the mesh the simulated camera renders, with its geometry: at the
+    placement the rig was given, the projected labels are the truth, pixel for pixel."""
+    reg = Registration(twin_support.TRUE, 0.0, (), 0, 0.0, 0, 0.0)
+    twin = TwinCamera(rig_with(256).camera.model, 64)
+    for az, f in zip(twin_support.AZIMUTHS, twin_support.misplaced_frames(), strict=True):
+        pl = projected_labels(twin, twin_support.SAT, twin_support.BUILD, az, twin_support.TILT, reg,
+                              f.truth.labels.shape)
+        assert np.array_equal(pl.labels, f.truth.labels)
+
+
+def _box_mockup(folder: Path) -> Path:
+    """An STL folder, one box per filament of Hubble B2, side by side (about 150 mm across)."""
+    import trimesh
+
+    from m2s2hil.catalog import load_catalog
+
+    folder.mkdir()
+    for i, mat in enumerate(load_catalog().build("hubble", "B2").materials):
+        box = trimesh.creation.box((30.0, 30.0, 40.0 + 20.0 * i))
+        box.apply_translation((30.0 * i, 0.0, 20.0 + 10.0 * i))
+        box.export(folder / f"{mat}.stl")
+    return folder
+
+
+def test_the_twin_projects_the_lab_mesh_the_rig_file_names(tmp_path: Path) -> None:
+    from m2s2hil.twin.registration import rig_meshes
+
+    rig = rig_with(128, mockups={"hubble": {"B2": {"mesh": str(_box_mockup(tmp_path / "stl"))}}})
+    f = SimBench(rig).frame("hubble", "B2", "weak", 30.0, 0.0, exposure_s=0.02, process=False)
+    meshes = rig_meshes(rig)
+    assert set(meshes) == {("hubble", "B2")}
+    reg = Registration(NOMINAL, 0.0, (), 0, 0.0, 0, 0.0)
+    lab = projected_labels(TwinCamera(rig.camera.model, 64, meshes=meshes), "hubble", "B2", 30.0, 0.0, reg,
+                           f.truth.labels.shape)
+    assert np.array_equal(lab.labels, f.truth.labels)
+    builtin = projected_labels(TwinCamera(rig.camera.model, 64), "hubble", "B2", 30.0, 0.0, reg,
+                               f.truth.labels.shape)
+    assert not np.array_equal(builtin.labels, f.truth.labels)  # the built-in Hubble is another shape

@@ -23,6 +23,10 @@ What stands on the turntable should be what the session says, where it says. For
    tilt are the mean of the lighting's frames' estimates and the offset a fit of their lateral
    shifts over azimuth; those decide the geometry flags, with tolerances ``joint_*`` set from
    the nominal distribution (mean + 3 sd over 27 nominal cells, docs/benchmarks.md).
+   *Fitted* (``joint_fit``): the offset and yaw flags come instead from the placement fitted
+   to the lighting's latest checked frames together (``SweepChecks.fitter``: the
+   registration's refinement, one round against the twin's predicted masks, scale held), in
+   which an offset along the line of sight and a yaw show within three frames 10° apart.
 2. **Materials.** The twin's label map, aligned, says which filament each pixel should show;
    its shaded render under the frame's lamps predicts that pixel's spectrum. A filament
    region (eroded by a pixel, unsaturated) is wrong when its median spectrum is more than
@@ -60,7 +64,7 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.optimize import nnls
+from scipy.optimize import nnls  # type: ignore[import-untyped]
 
 from m2s2hil.simulators.scene import MountedScene
 from m2s2hil.twin.projection import (
@@ -104,6 +108,14 @@ class CheckConfig:
     joint_tilt_deg: float = 1.0
     joint_noise_mm: float = 0.2  # one frame's lateral shift noise (nominal spread, docs/benchmarks.md)
     joint_prior_mm: float = 3.0
+    # The placement fitted to the lighting's checked frames together (the twin's silhouettes
+    # against the masks less their predicted bias, ``registration.Registrar``): an offset along
+    # the line of sight and a yaw show in it where one view's alignment cannot tell them from
+    # a shift; its tolerances from the nominal cells (docs/benchmarks.md).
+    joint_fit: bool = True
+    joint_fit_shift_mm: float = 0.8
+    joint_fit_yaw_deg: float = 0.6
+    joint_fit_frames: int = 4  # the latest checked frames of the lighting it fits
 
     def __post_init__(self) -> None:
         checks = {
@@ -146,7 +158,7 @@ def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def _shift(img: np.ndarray, u: float, v: float) -> np.ndarray:
-    m = np.float32([[1, 0, u], [0, 1, v]])
+    m = np.array([[1, 0, u], [0, 1, v]], dtype=np.float32)
     return cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT)
 
@@ -163,9 +175,12 @@ class TwinChecks:
     """The checks of one camera model and lamp set (thread-safe: one frame at a time)."""
 
     def __init__(self, model: Any, lamps: Sequence[LampSpec], *, config: CheckConfig | None = None,
-                 spot_angle_deg: float = 45.0, sensor_params: Any = None) -> None:
+                 spot_angle_deg: float = 45.0, sensor_params: Any = None,
+                 meshes: Mapping[tuple[str, str], Any] | None = None) -> None:
         self.config = cfg = config or CheckConfig()
-        kw = {} if cfg.diameter_mm is None else {"diameter_mm": cfg.diameter_mm}
+        kw: dict[str, Any] = {"meshes": meshes}
+        if cfg.diameter_mm is not None:
+            kw["diameter_mm"] = cfg.diameter_mm
         self.twin = TwinCamera(model, cfg.size, **kw)
         # The twin's own frame at twice the checks' size: which pixels a nominal frame's mask
         # would hold (shadowed or dark parts the mask rule misses, edge pixels), to debias.
@@ -303,7 +318,7 @@ class TwinChecks:
                               band_gain=self._sensor.band_gain)
         cube = sh.cube(dn_scale)
         cube = np.stack([_shift(b, al.u_px, al.v_px) for b in cube])
-        lab = cv2.warpAffine(sh.label, np.float32([[1, 0, al.u_px], [0, 1, al.v_px]]),
+        lab = cv2.warpAffine(sh.label, np.array([[1, 0, al.u_px], [0, 1, al.v_px]], dtype=np.float32),
                              (sh.label.shape[1], sh.label.shape[0]), flags=cv2.INTER_NEAREST)
         return cube, lab
 
@@ -416,13 +431,14 @@ class SweepChecks:
     _count: int = 0
     _seen: dict[str, int] = field(default_factory=dict)  # flag -> checked frames of this key with it
     _frames: list[Any] = field(default_factory=list)  # this key's checked frames (Observation)
-    _joint: Any = None  # the Registrar of the joint fit, made on first use
+    fitter: Any = None  # registration.Registrar of the joint fit over a lighting's frames
+    _fit_obs: list[Any] = field(default_factory=list)  # this key's checked frames (Observation)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def due(self, key: Any) -> bool:
         with self._lock:
             if key != self._key:
-                self._key, self._count, self._seen, self._frames = key, 0, {}, []
+                self._key, self._count, self._seen, self._frames, self._fit_obs = key, 0, {}, [], []
             self._count += 1
             n, cfg = self._count, self.checks.config
             return n <= cfg.first_frames or (n - cfg.first_frames) % cfg.every == 0
@@ -436,14 +452,19 @@ class SweepChecks:
             return None
         if not self.due(key):
             return None
+        from m2s2hil.twin.registration import Observation
+
         reg = None
         if self.registration is not None:  # the checked frames feed the sweep's registration too
-            from m2s2hil.twin.registration import Observation
-
             r = self.registration.add(Observation.from_cube(self.satellite, self.build, az, tilt, cube, 96))
             reg = r.placement if r is not None else None
         with self._lock:
             frames = self._frames
+            if self.fitter is not None and self.checks.config.joint_fit:
+                o = Observation.from_meta(self.satellite, self.build, cube, meta, 128)
+                if o is not None and o.mask.any():
+                    self._fit_obs.append(o)
+            fit_obs = list(self._fit_obs[-self.checks.config.joint_fit_frames:])
         res = self.checks.check(cube, self.satellite, self.build, float(az), float(tilt),
                                 list(meta.get("lamps_on") or []), float(meta.get("exposure_s") or 0.0),
                                 float(meta.get("gain") or 1.0), registered=reg, saturated=saturated,
@@ -456,13 +477,14 @@ class SweepChecks:
             for f in res["flags"]:
                 self._seen[f] = self._seen.get(f, 0) + 1
             confirmed = [f for f in res["flags"] if self._seen[f] >= self.checks.config.confirm]
-        joint = self._joint_flags(frames, res, reg)
+        joint = self._joint_flags(frames, res, reg, fit_obs)
         if joint is not None:  # the joint fit decides the geometry; one frame's estimate does not
             confirmed = [f for f in confirmed if f not in _GEOMETRY] + joint
         res["frame_flags"], res["flags"] = res["flags"], confirmed
         return res
 
-    def _joint_flags(self, frames: list[Any], res: dict[str, Any], reg: Placement | None) -> list[str] | None:
+    def _joint_flags(self, frames: list[Any], res: dict[str, Any], reg: Placement | None,
+                     fit_obs: Sequence[Any] = ()) -> list[str] | None:
         """Geometry flags from the estimates of all this lighting's checked frames together
         (None: fewer than two, or this frame was not aligned).
 
@@ -471,7 +493,8 @@ class SweepChecks:
         fitted as ``u_i = dx cos(az_i) − dy sin(az_i)`` (an orthographic view, the turntable
         turning the offset), ridge-pulled to 0 with a prior of ``joint_prior_mm``, so an offset
         along the line of sight at the first azimuth shows as the turntable turns; or, as one
-        frame sees it, a lateral shift over ``shift_mm`` in two frames."""
+        frame sees it, a lateral shift over ``shift_mm`` in two frames. With ``joint_fit``, the
+        offset and yaw of a placement fitted to the frames themselves decide instead."""
         cfg = self.checks.config
         if not cfg.joint or len(frames) < 2 or "shift_mm" not in res:
             return None
@@ -487,15 +510,37 @@ class SweepChecks:
         flags = []
         with self._lock:
             shifted = self._seen.get("off_axis", 0) >= cfg.confirm
-        if math.hypot(dx, dy) > cfg.joint_shift_mm or shifted:
+        fit = self._fit(fit_obs) if len(fit_obs) >= 2 else None
+        if fit is not None:
+            fp = fit.placement
+            res["joint"]["fit"] = {"offset_mm": [round(fp.dx_mm, 3), round(fp.dy_mm, 3)],
+                                   "yaw_deg": round(fp.yaw_deg, 3),
+                                   "tilt_bias_deg": round(fp.tilt_bias_deg, 3),
+                                   "residual": round(fit.residual, 4), "frames": fit.frames,
+                                   "elapsed_s": round(fit.elapsed_s, 3)}
+            off = math.hypot(fp.dx_mm, fp.dy_mm) > cfg.joint_fit_shift_mm
+            yawed = abs(fp.yaw_deg) > cfg.joint_fit_yaw_deg
+        else:
+            off = math.hypot(dx, dy) > cfg.joint_shift_mm
+            yawed = abs(yaw) > cfg.joint_yaw_deg
+        if off or shifted:
             flags.append("off_axis")
-        if abs(yaw) > cfg.joint_yaw_deg:
+        if yawed:
             flags.append("yawed")
         if reg is None and abs(tilt) > cfg.joint_tilt_deg:
             flags.append("tilt_off")
         if reg is not None and abs(tilt - reg.tilt_bias_deg) > cfg.joint_tilt_deg:
             flags.append("tilt_drift")
         return flags
+
+    def _fit(self, obs: Sequence[Any]) -> Any:
+        """The placement fitted to ``obs`` from the nominal mount, scale held (None: no fit)."""
+        from m2s2hil.twin.registration import RegistrationError
+
+        try:
+            return self.fitter.register(obs, NOMINAL, fit_scale=False)
+        except RegistrationError:
+            return None
 
     def labels(self, meta: Mapping[str, Any], shape: tuple[int, ...]) -> Any:
         """The frame's projected labels (``twin.labels.ProjectedLabels``) at ``shape`` (the
@@ -505,7 +550,9 @@ class SweepChecks:
         reg = self.registration.current if self.registration is not None else None
         pose = meta.get("pose") or {}
         az, tilt = pose.get("turntable_deg"), pose.get("tilt_deg")
-        if reg is None or len(shape) != 2 or not all(isinstance(v, (int, float)) for v in (az, tilt)):
+        if reg is None or len(shape) != 2:
+            return None
+        if not isinstance(az, (int, float)) or not isinstance(tilt, (int, float)):
             return None
         return projected_labels(self.checks.twin, self.satellite, self.build, float(az), float(tilt), reg,
                                 (int(shape[0]), int(shape[1])))
@@ -514,15 +561,22 @@ class SweepChecks:
 def sweep_checks(sweep: Any, rig: Any, config: CheckConfig | None = None, *,
                  register: bool = False) -> SweepChecks:
     """The checks for a session: its sweep's satellite and build, its rig's camera and lamps."""
+    from m2s2hil.twin.registration import IncrementalRegistration, Registrar, rig_meshes, rig_predictor
+
     lamps = [LampSpec(name, lc.channel, lc.kind, lc.warmup_s) for name, lc in rig.lamps.items()]
     sim = getattr(rig, "simulation", None)
+    meshes = rig_meshes(rig)
     checks = TwinChecks(rig.camera.model, lamps, config=config,
                         spot_angle_deg=sim.spot_angle_deg if sim is not None else 45.0,
-                        sensor_params=sim.sensor.params() if sim is not None else None)
+                        sensor_params=sim.sensor.params() if sim is not None else None, meshes=meshes)
     incremental = None
     if register:
-        from m2s2hil.twin.registration import IncrementalRegistration, Registrar
-
         # One coarse level, few iterations: it runs in the processing thread, warm-started.
-        incremental = IncrementalRegistration(Registrar(rig.camera.model, levels=((48, 1.5),), max_nfev=6))
-    return SweepChecks(checks, sweep.satellite, sweep.build, incremental)
+        incremental = IncrementalRegistration(Registrar(rig.camera.model, levels=((48, 1.5),), max_nfev=6,
+                                                        meshes=meshes))
+    fitter = None
+    if checks.config.joint_fit:
+        side = min(128, max(rig.camera.model.width, rig.camera.model.height) // 4)
+        fitter = Registrar(rig.camera.model, levels=(), refine=((max(24, 3 * side // 4), 0.8), (side, 0.5)),
+                           rounds=1, refine_nfev=20, predictor=rig_predictor(rig, meshes), meshes=meshes)
+    return SweepChecks(checks, sweep.satellite, sweep.build, incremental, fitter=fitter)

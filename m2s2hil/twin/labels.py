@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from m2s2hil.twin.projection import Placement, TwinCamera
-from m2s2hil.twin.registration import Registration
+from m2s2hil.twin.registration import Registration, rig_meshes
 
 LABELS_VERSION = 1
 
@@ -55,7 +55,7 @@ def session_labels(store: Any, registration: Registration, *, shape: tuple[int, 
                    twin: TwinCamera | None = None) -> Iterator[tuple[str, ProjectedLabels]]:
     """``(event_id, labels)`` for every frame of a stored session, at the cube's size (or ``shape``)."""
     model = store.rig.camera.model
-    twin = twin or TwinCamera(model, 64)
+    twin = twin or TwinCamera(model, 64, meshes=rig_meshes(store.rig))
     side = shape or (int(model.height) // 4, int(model.width) // 4)  # the superpixel cube's
     sweep = store.sweep
     for fr in store.frames():

@@ -47,7 +47,7 @@ class Placement:
     scale: float = 1.0
 
     @classmethod
-    def from_vector(cls, v: Sequence[float]) -> Placement:
+    def from_vector(cls, v: Sequence[float] | np.ndarray) -> Placement:
         return cls(*(float(x) for x in v))
 
     def vector(self) -> np.ndarray:
@@ -116,7 +116,8 @@ class TwinCamera:
     """The twin's view of the rig for a camera ``model`` (bands, layout, aspect) at ``size`` px."""
 
     def __init__(self, model: Any, size: int = 96, *, diameter_mm: float = DIAMETER_MM,
-                 supersample: int = 2, fill: float | None = None) -> None:
+                 supersample: int = 2, fill: float | None = None,
+                 meshes: Mapping[tuple[str, str], Any] | None = None) -> None:
         w, h = int(model.width), int(model.height)
         self.width = int(size) if w >= h else max(8, round(size * w / h))
         self.height = int(size) if h >= w else max(8, round(size * h / w))
@@ -125,6 +126,10 @@ class TwinCamera:
         self.supersample = int(supersample)
         params = SceneParams(threads=1) if fill is None else SceneParams(fill=fill, threads=1)
         self.scene = Scene(self.width, self.height, model.bands_nm, model.fwhm_nm, model.layout, params)
+        # The lab's meshes the rig file names (``sim_config.mesh_mockups``): the twin must be
+        # the mockup the simulated camera renders, or its labels are another object's.
+        self.meshes: dict[tuple[str, str], Any] = dict(meshes or {})
+        self.scene.meshes.update(self.meshes)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -180,7 +185,7 @@ class TwinCamera:
                band_gain: np.ndarray | None = None) -> Shaded:
         """The scene renderer's view (labels, shading) at this placement; scale is ignored
         (the photometric checks compare ratios inside the silhouette)."""
-        off = self._offset(mounted, p)
+        off = [float(v) for v in self._offset(mounted, p)]
         return self.scene.render(mounted.satellite, mounted.materials, az + p.yaw_deg, tilt + p.tilt_bias_deg,
                                  lamp_output, lamp_info, spot_angle_deg, band_gain=band_gain, offset=off,
                                  build=mounted.build)
@@ -194,3 +199,84 @@ class TwinCamera:
         m = self.model
         sensor = Sensor(8, 8, m.layout, m.bands_nm, m.fwhm_nm, int(m.full_scale))
         return np.asarray(sensor.band_gain, dtype=np.float64)
+
+
+class MaskPredictor:
+    """What :func:`observed_mask` would make of a frame of the twin: the mask's own bias.
+
+    The mask rule keeps what stands out from the backdrop: it counts an edge pixel the mockup
+    only partly covers when that part is bright enough, loses a shadowed or dark part, and,
+    on a mosaic sensor's superpixel cube, sees each band a fraction of a pixel off. A fit of
+    silhouettes to masks reads all of that as a placement (a larger scale, a yaw). The twin
+    predicts it: its shaded frame under the frame's lamps and exposure, at the sensor's size
+    through the mosaic and the superpixel cube (or, for a large sensor, every band at the
+    cube's size), through the same rule with the frame's noise. Exact on the simulated rig,
+    whose shading the twin shares; on a real rig as good as the twin's photometry.
+    """
+
+    def __init__(self, model: Any, lamp_info: Mapping[int, Any], *, spot_angle_deg: float = 45.0,
+                 sensor_params: Any = None, diameter_mm: float = DIAMETER_MM,
+                 meshes: Mapping[tuple[str, str], Any] | None = None, max_render: int = 1024) -> None:
+        from m2s2hil.simulators.sensor import Sensor
+
+        self.model = model
+        self.lamp_info = dict(lamp_info)
+        self.spot_angle_deg = float(spot_angle_deg)
+        self.sensor = Sensor(8, 8, model.layout, model.bands_nm, model.fwhm_nm, int(model.full_scale),
+                             sensor_params)
+        self.layout = np.asarray(model.layout, dtype=np.int64)
+        n = self.layout.shape[0]
+        w, h = int(model.width), int(model.height)
+        # A sensor up to ``max_render`` px is rendered whole, mosaic and superpixel emulated;
+        # a larger one at its superpixel cube's size, every band at every pixel.
+        self.mosaic = max(w, h) <= max_render
+        side = max(w, h) if self.mosaic else max(w, h) // n
+        self.twin = TwinCamera(model, side, diameter_mm=diameter_mm, supersample=1, meshes=meshes)
+        self._cells = n
+        self._side, self._diameter, self._meshes = side, diameter_mm, meshes
+        self._scaled: dict[float, TwinCamera] = {}
+
+    def _cube(self, sh: Shaded, dn_scale: float) -> np.ndarray:
+        if not self.mosaic:
+            return sh.cube(dn_scale)
+        n = self._cells
+        h, w = sh.rate.shape
+        cells = (np.asarray(sh.rate, dtype=np.float32) * np.float32(dn_scale))[: h - h % n, : w - w % n]
+        cells = cells.reshape(h // n, n, w // n, n)
+        nb = int(self.layout.max()) + 1
+        out = np.empty((nb, h // n, w // n), np.float32)
+        for b in range(nb):
+            pos = np.argwhere(self.layout == b)
+            out[b] = np.mean([cells[:, r, :, c] for r, c in pos], axis=0)
+        return out
+
+    def _camera(self, scale: float) -> TwinCamera:
+        """The twin's camera at ``scale`` (the renderer's scale is its fill: one camera a scale)."""
+        key = round(float(scale), 5)
+        if key == 1.0:
+            return self.twin
+        if key not in self._scaled:
+            if len(self._scaled) > 64:
+                self._scaled.clear()
+            self._scaled[key] = TwinCamera(self.model, self._side, diameter_mm=self._diameter, supersample=1,
+                                           fill=SceneParams().fill * key, meshes=self._meshes)
+        return self._scaled[key]
+
+    def coverage(self, mounted: MountedScene, az: float, tilt: float, p: Placement,
+                 lamps_on: Sequence[int], exposure_s: float, gain: float, noise_norm: float,
+                 backdrop_norm: float, shape: tuple[int, int]) -> np.ndarray:
+        """The mask coverage (at ``shape``) a frame of this pose and light would give."""
+        twin = self._camera(p.scale)
+        m = twin.scene.mount(mounted.satellite, mounted.materials, mounted.build)
+        lit = {ch: 1.0 for ch in lamps_on if ch in self.lamp_info}
+        sh = twin.shaded(m, az, tilt, p, lit, self.lamp_info, self.spot_angle_deg,
+                         band_gain=self.sensor.band_gain)
+        pred = self._cube(sh, float(exposure_s) * self.sensor.dn_per_e(gain))
+        bg_pred, _ = backdrop_noise(pred)
+        # The frame's noise, scaled by the predicted backdrop to the observed one (a twin
+        # whose photometry is a little off still gets the frame's signal-to-noise).
+        noise = noise_norm * (bg_pred / backdrop_norm if backdrop_norm > 0 else 1.0)
+        mask = observed_mask(pred, noise_norm=noise)
+        if mask.shape == shape:
+            return mask.astype(np.float32)
+        return (coverage_of(mask, shape) >= 0.5).astype(np.float32)  # as Observation.from_cube keeps it
