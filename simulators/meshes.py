@@ -88,6 +88,7 @@ class _RawPart:
     material: str | None  # a name to resolve, None: not given
     vertices: np.ndarray  # (N, 3) mm
     faces: np.ndarray  # (M, 3)
+    source: Path | None = None  # the part's own file (an STL of a folder): what its errors name
 
 
 # -- material names -----------------------------------------------------------------------
@@ -144,7 +145,7 @@ class _Object:
 def _read_model(xml: bytes, path: str, objects: dict[tuple[str, str], _Object]) -> tuple[list, float]:
     """Objects of one model part into ``objects`` (keyed (model path, id)); returns the build
     items [(object id, transform)] and the unit's millimetres."""
-    from lxml import etree
+    from lxml import etree  # type: ignore[import-untyped]  # no stubs ship with lxml
 
     root = etree.fromstring(xml, parser=etree.XMLParser(resolve_entities=False, huge_tree=True))
     unit = root.get("unit", "millimeter")
@@ -309,7 +310,7 @@ def _read_stl_folder(path: Path) -> tuple[list[_RawPart], str]:
         except Exception as exc:  # trimesh raises many kinds on a bad file
             raise MeshFileError(f, f"not a readable STL: {exc}") from None
         faces = np.asarray(getattr(m, "faces", np.zeros((0, 3))))
-        parts.append(_RawPart(f.stem, f.stem, np.asarray(getattr(m, "vertices", np.zeros((0, 3)))), faces))
+        parts.append(_RawPart(f.stem, f.stem, np.asarray(getattr(m, "vertices", np.zeros((0, 3)))), faces, f))
     return parts, "millimeter (STL has no units; assumed, as slicers do)"
 
 
@@ -350,27 +351,30 @@ def load_mesh_mockup(
     build = list(materials)
     rot = _rotation(rotate_deg)
     meshes: list[tuple[str, str, trimesh.Trimesh]] = []
+    sources: dict[str, Path] = {}
     for p in raw:
         where = f"part {p.name!r}"
+        src = p.source or path  # an STL of a folder is named itself
         if len(p.faces) == 0 or len(p.vertices) == 0:
-            raise MeshFileError(path, f"{where} has no triangles")
+            raise MeshFileError(src, f"{where} has no triangles")
         if not np.isfinite(p.vertices).all():
-            raise MeshFileError(path, f"{where} has non-finite vertex coordinates")
+            raise MeshFileError(src, f"{where} has non-finite vertex coordinates")
         if p.faces.min() < 0 or p.faces.max() >= len(p.vertices):
-            raise MeshFileError(path, f"{where} has triangles naming vertices it does not have")
+            raise MeshFileError(src, f"{where} has triangles naming vertices it does not have")
         key = material_key(p.material or "") or material_key(p.name)
         if key is None:
-            raise MeshFileError(path, f"{where}: material {p.material!r} is none of the known filaments "
+            raise MeshFileError(src, f"{where}: material {p.material!r} is none of the known filaments "
                                       f"({', '.join(MATERIAL_KEYS)})")
         if key not in build:
-            raise MeshFileError(path, f"{where} is {key}, which the build {satellite} ({', '.join(build)}) "
+            raise MeshFileError(src, f"{where} is {key}, which the build {satellite} ({', '.join(build)}) "
                                       "does not have")
         tm = trimesh.Trimesh(p.vertices @ rot.T, p.faces, process=True)
         tm.update_faces(tm.nondegenerate_faces())
         tm.remove_unreferenced_vertices()
         if len(tm.faces) == 0:
-            raise MeshFileError(path, f"{where} has only degenerate triangles")
+            raise MeshFileError(src, f"{where} has only degenerate triangles")
         meshes.append((p.name, key, tm))
+        sources[p.name] = src
     n_tri = sum(len(m.faces) for _, _, m in meshes)
     if n_tri > MAX_TRIANGLES:
         raise MeshFileError(path, f"{n_tri} triangles: more than {MAX_TRIANGLES}; decimate it in the slicer")
@@ -387,8 +391,9 @@ def load_mesh_mockup(
             rhi = np.max([r.bounds[1] for r in rest], axis=0)
             gap = _gap(m.bounds[0], m.bounds[1], rlo, rhi)
             if gap > DETACHED * float((rhi - rlo).max()):
-                raise MeshFileError(path, f"part {name!r} lies {gap:.4g} mm away from the rest of the model: "
-                                          "exported about its own origin, or in other units?")
+                why = "exported about its own origin, or in other units?"
+                raise MeshFileError(sources[name], f"part {name!r} lies {gap:.4g} mm away from the rest of "
+                                                   f"the model: {why}")
     used = {k for _, k, _ in meshes}
     primary = PRIMARY if PRIMARY in build else build[0]
     missing = [m for m in build if m not in used and m != primary]

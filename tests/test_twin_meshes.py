@@ -191,7 +191,7 @@ def test_stl_folder_one_file_per_material_renders_its_labels(tmp_path):
     ("not_in_build", "is red, which the build hubble B2"),
     ("unknown", "'tube' is none of the known filaments"),
     ("missing_material", "no part is pro_metallic_magenta"),
-    ("detached", "'pro_metallic_magenta' lies"),
+    ("detached", "pro_metallic_magenta.stl: part 'pro_metallic_magenta' lies"),
     ("empty_folder", "no .stl files"),
 ])
 def test_a_bad_file_is_one_line_naming_it(tmp_path, case, match):
@@ -254,3 +254,28 @@ def test_rig_file_mesh_errors_name_the_key_or_the_file(tmp_path):
     world = build_world(rig, clock=VirtualClock())
     with pytest.raises(MeshFileError, match=r"gone.3mf: no such file"):
         build_frame_source(rig, world)
+
+
+def test_synth_renders_the_lab_mesh_the_rig_file_names(tmp_path):
+    from cli_support import run_cli
+
+    from m2s2hil.store.session import SessionStore
+    from m2s2hil.twin.synth import band_images
+
+    stl_folder(tmp_path / "stl")
+    rig = rig_with_mesh(tmp_path, '[simulation.mockups.hubble.B2]\nmesh = "stl"\n')
+    r = run_cli("synth", "--sat", "hubble", "--build", "B2", "--tilts", "E1", "--step", "180", "--size", "48",
+                "--rig", rig, "--root", tmp_path / "root", "--session-id", "syn-mesh")
+    assert r.exit_code == 0, r.stderr
+    with SessionStore.open(tmp_path / "root", "syn-mesh") as st:
+        fr = st.frames()[0]
+        _, _, mask = band_images(st, fr.event_id)
+    assert fr.meta["synthetic"]["mockup"] == f"hubble B2:{tmp_path / 'stl'}"
+    assert {fr.meta["class_names"][i] for i in np.unique(mask)} == {"background", *B2}
+    # A file that cannot be used is one line naming it, and no session is created.
+    (tmp_path / "stl" / "dark_grey.stl").write_text("solid broken\nfacet oops\n")
+    r = run_cli("synth", "--sat", "hubble", "--build", "B2", "--size", "16", "--rig", rig,
+                "--root", tmp_path / "root2")
+    assert r.exit_code == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert f"{tmp_path / 'stl' / 'dark_grey.stl'}: part 'dark_grey' has no triangles" in r.stderr
+    assert not (tmp_path / "root2").exists() or not any((tmp_path / "root2").iterdir())

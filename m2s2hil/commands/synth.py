@@ -10,6 +10,10 @@ HIL sessions of the same build. The band colours and the filaments' RGB colours 
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,7 +39,7 @@ def synth_cmd(
     from m2s2hil.config import load_rig
     from m2s2hil.errors import UsageError
     from m2s2hil.store.catalogue import default_data_root
-    from m2s2hil.twin.synth import GAMMA, SynthPlan, synthesise
+    from m2s2hil.twin.synth import GAMMA, SynthPlan, SynthRun
 
     if not 0.01 <= step <= 360:
         raise UsageError(f"--step {step} must lie in 0.01 … 360 degrees")
@@ -46,14 +50,40 @@ def synth_cmd(
     lights = band_colours(model.bands_nm, gamma=GAMMA)
     weights = camera_weights(model.bands_nm)
 
-    def progress(done: int, total: int) -> None:
+    def progress(done: int, total: int, _event: object) -> None:
         if done == total or done % 36 == 0:
             typer.echo(f"  {done}/{total} views", err=True)
 
-    res = synthesise(root or default_data_root(), cfg, plan, lights, weights, session_id=session_id,
-                     progress=progress)
+    run = SynthRun(root or default_data_root(), cfg, plan, lights, weights, session_id=session_id)
+    with _first_ctrl_c() as interrupted:  # the first Ctrl-C ends the render after the current view
+        res = run.run(progress=progress,
+                      stop=lambda: "interrupted (Ctrl-C)" if interrupted.is_set() else None)
+    if res.state != "completed":
+        typer.echo(f"stopped after {res.views} of {res.planned} synthetic views of {sat} {build}; what is "
+                   f"rendered is kept in {res.path} (aborted)", err=True)
+        raise typer.Exit(130)
     typer.echo(f"rendered {res.views} synthetic views of {sat} {build} into {res.path} "
                f"({res.views_per_s:.1f} views/s)")
+
+
+@contextlib.contextmanager
+def _first_ctrl_c() -> Iterator[threading.Event]:
+    """An event set by the first SIGINT (the second raises KeyboardInterrupt, as usual); off the
+    main thread (an in-process caller) no handler is installed."""
+    flag = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        flag.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def evaluate_synthetic_session(

@@ -1,22 +1,30 @@
 """What the API lists and serves from the session store on disk: sessions, frames, frame
-files and a journal replayed as events. Functions here read; they change nothing."""
+files and a journal replayed as events. Functions here read; they change nothing, but for
+:func:`end_killed_render`, which a daemon start with resumption runs on a render a killed
+process left (:func:`interrupted_sessions`)."""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 from m2s2hil.drivers.clock import Clock
+from m2s2hil.errors import M2S2Error
 from m2s2hil.store.catalogue import list_sessions
 from m2s2hil.store.errors import SessionCorrupt, SessionNotFound
+from m2s2hil.store.owner_lock import SessionLocked
 from m2s2hil.store.records import frame_record
 from m2s2hil.store.session import SessionStore
+from m2s2hil.twin.synth import STOPPED_EVENT, planned_views
 
 from .errors import Conflict, UnknownSession
 from .jobqueue import Job
+
+log = logging.getLogger(__name__)
 
 
 def open_store(root: Path, session_id: str, clock: Clock,
@@ -52,6 +60,11 @@ class PlannedCounts:
         self._n[session_id] = n
 
     def _expand(self, store: SessionStore) -> None:
+        if store.kind == "synthetic":  # its plan is its views; its sweep holds only the HIL poses
+            views = planned_views(store)
+            n = views if views is not None else len(store.completed_event_ids())
+            self._n[store.session_id] = self._frames[store.session_id] = n
+            return
         events = store.sweep.expand(store.rig)
         self._n[store.session_id] = len(events)
         self._frames[store.session_id] = sum(1 for e in events if e.kind == "frame")
@@ -146,9 +159,61 @@ def journal_events(store: SessionStore) -> tuple[str, list[dict]]:
 
 
 
+#: Journal states of a render that had not ended when its process went away.
+UNFINISHED_RENDER = frozenset({"created", "queued", "running"})
+KILLED_RENDER_REASON = "its process ended before the render finished (found at daemon start)"
+
+
 def interrupted_sessions(root: Path) -> list[str]:
     """The sessions a daemon start resumes, in order: those that were running, then those that
-    were waiting, oldest first in each."""
+    were waiting, oldest first in each. Captures only: a synthetic session is never handed to
+    the capture engine (it has no sweep to capture, and the engine would write HIL frames into
+    it); one a killed process left unfinished is ended here instead (:func:`end_killed_render`)."""
     infos = list(reversed(list_sessions(root)))  # oldest first
-    first = [i.session_id for i in infos if i.state in ("running", "pausing", "interrupted")]
-    return first + [i.session_id for i in infos if i.state in ("created", "queued")]
+    candidates = {"running", "pausing", "interrupted", "created", "queued"}
+    synthetic: set[str] = set()
+    for i in infos:
+        if i.state in candidates and _kind(root, i.session_id) == "synthetic":
+            synthetic.add(i.session_id)
+            if i.state in UNFINISHED_RENDER:
+                end_killed_render(root, i.session_id)
+    hil = [i for i in infos if i.session_id not in synthetic]
+    first = [i.session_id for i in hil if i.state in ("running", "pausing", "interrupted")]
+    return first + [i.session_id for i in hil if i.state in ("created", "queued")]
+
+
+def _kind(root: Path, session_id: str) -> str | None:
+    """A session's kind, or None when it cannot be read (the resumption says why)."""
+    try:
+        with SessionStore.open(root, session_id) as store:
+            return store.kind
+    except (M2S2Error, OSError):
+        return None
+
+
+def end_killed_render(root: Path, session_id: str) -> bool:
+    """End a synthetic session a killed process left ``created``/``queued``/``running``: its
+    views are checked (a damaged one goes to ``quarantine/``, as a resume does), the manifest
+    written and the session marked ``aborted``, the reason in a ``synthetic_stopped`` event, as
+    a render stopped by a daemon shutdown. A render cannot be resumed (render it again), so this
+    is its end. Left alone while another process holds it (a ``m2s2hil synth`` still rendering
+    on this data root); False then, or when it cannot be opened."""
+    try:
+        store = SessionStore.open(root, session_id, mode="write")
+    except SessionLocked:
+        return False
+    except (M2S2Error, OSError) as exc:
+        log.error("synthetic session %s was left unfinished and cannot be ended: %s", session_id, exc)
+        return False
+    with store:
+        if store.kind != "synthetic" or store.state not in UNFINISHED_RENDER:
+            return False  # changed since it was listed
+        was = store.state
+        lost = store.check_stored()
+        views = len(store.completed_event_ids())
+        store.record_event(STOPPED_EVENT, {"reason": KILLED_RENDER_REASON, "was": was, "views": views,
+                                           "of": planned_views(store), "quarantined": len(lost)})
+        store.complete("aborted")
+    log.warning("synthetic session %s was %s when its process ended: marked aborted, %d view(s) kept",
+                session_id, was, views)
+    return True

@@ -85,6 +85,9 @@ class Submissions:
                                     f"(limit {sessions.queue_limit})")
             store = self._open(session_id)
             try:
+                if store.kind == "synthetic":  # the engine would capture HIL frames into a render
+                    raise Conflict(f"session {session_id} is a synthetic render: it is not resumed "
+                                   "(render it again: POST /synthetic)")
                 try:
                     check_rig_digest(store, sessions.rig.config)
                 except RigChanged as exc:

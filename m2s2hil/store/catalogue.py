@@ -8,6 +8,7 @@ m2s2hil.catalog, the catalogue of satellites and their materials.)
 
 from __future__ import annotations
 
+import json
 import os
 import sqlite3
 from pathlib import Path
@@ -62,35 +63,62 @@ def list_sessions(root: str | Path) -> list[SessionInfo]:
     return out
 
 
+#: The event a synthetic session's plan is recorded in (``m2s2hil.twin.synth.PLAN_EVENT``, which
+#: writes it: the store sits below the twin, so it reads the event itself).
+SYNTHETIC_PLAN_EVENT = "synthetic_plan"
+
+
+def synthetic_planned_views(store: SessionStore) -> int | None:
+    """The views a synthetic session was planned to render (its plan event, as
+    ``m2s2hil.twin.synth.planned_views`` reads it); None without one."""
+    rows = store.journal.query("SELECT payload FROM events WHERE kind = ? ORDER BY seq LIMIT 1",
+                               (SYNTHETIC_PLAN_EVENT,))
+    views = json.loads(rows[0]["payload"]).get("views") if rows else None
+    return int(views) if isinstance(views, int | float) else None
+
+
 def summary(store: SessionStore) -> dict[str, Any]:
-    """An open session's counts against its plan: frames and darks stored, skipped, missing,
-    faults, bytes, and its provenance."""
+    """An open session's kind and counts against its plan: frames and darks stored, skipped,
+    missing, faults, bytes, and its provenance. A synthetic session's plan is its views (its
+    plan event; the views stored when it has none), without darks."""
     row = store.journal.session()
-    planned = store.sweep.expand(store.rig)
-    planned_frames = {e.event_id for e in planned if e.kind == "frame"}
-    planned_darks = {e.event_id for e in planned if e.kind == "dark"}
+    kind = store.kind
     done = store.completed_event_ids()
     frames = store.frames()
     darks = store.darks()
-    if store.kind == "synthetic":  # its plan is what it rendered (m2s2hil.twin.synth), no darks
-        planned_frames, planned_darks = {fr.event_id for fr in frames}, set()
+    if kind == "synthetic":  # the sweep stored with it holds only the HIL poses: not its plan
+        views = synthetic_planned_views(store)
+        n_planned = len(frames) if views is None else views
+        stored = len({fr.event_id for fr in frames} & done)
+        counts = {"planned_frames": n_planned, "planned_darks": 0, "frames": len(frames), "darks": len(darks),
+                  "frames_planned_stored": min(stored, n_planned), "missing": max(0, n_planned - stored)}
+    else:
+        planned = store.sweep.expand(store.rig)
+        planned_frames = {e.event_id for e in planned if e.kind == "frame"}
+        planned_darks = {e.event_id for e in planned if e.kind == "dark"}
+        counts = {
+            "planned_frames": len(planned_frames), "planned_darks": len(planned_darks), "frames": len(frames),
+            "darks": len(done & planned_darks) + len({d.dark_id for d in darks} - planned_darks),
+            "frames_planned_stored": len(planned_frames & done), "missing": len(planned_frames - done),
+        }
     total_bytes = sum(f.bytes for fr in frames for f in fr.files.values())
     total_bytes += sum(f.bytes for d in darks for f in d.files.values())
     return {
         "session_id": store.session_id,
         "path": str(store.path),
+        "kind": kind,
         "satellite": store.sweep.satellite,
         "build": store.sweep.build,
         "state": row["state"],
         "created": row["created"],
         "updated": row["updated"],
-        "planned_frames": len(planned_frames),
-        "planned_darks": len(planned_darks),
-        "frames": len(frames),
-        "darks": len(done & planned_darks) + len({d.dark_id for d in darks} - planned_darks),
-        "frames_planned_stored": len(planned_frames & done),
+        "planned_frames": counts["planned_frames"],
+        "planned_darks": counts["planned_darks"],
+        "frames": counts["frames"],
+        "darks": counts["darks"],
+        "frames_planned_stored": counts["frames_planned_stored"],
         "skipped": len(store.skipped_event_ids()),
-        "missing": len(planned_frames - done),
+        "missing": counts["missing"],
         "faults": store.journal.query("SELECT COUNT(*) AS n FROM events WHERE kind = 'fault'")[0]["n"],
         "bytes": total_bytes,
         "rig_digest": store.rig_digest,

@@ -73,7 +73,7 @@ def _hf(store: SessionStore, out: Path, target: Path, frames: list[FrameRecord],
     from m2s2hil.store.export_hf import CARD, require_datasets, write_parquet
 
     require_datasets()
-    from datasets import Features, Image, Sequence, Value
+    from datasets import Features, Image, Sequence, Value  # type: ignore[import-untyped]
 
     features = Features({
         "rgb": Image(), "bands": Sequence(Image()), "mask": Image(),

@@ -1,4 +1,5 @@
-"""A session's HTML report: QC distribution, QC per pose, and a contact sheet of previews.
+"""A session's HTML report: QC distribution, QC per pose, and a contact sheet of previews
+(a synthetic session's report, its renders and masks, is ``synthetic_html``'s).
 
 One self-contained file (thumbnails and the histogram are inlined as base64, so the
 report can be mailed or archived without the session). Sections:
@@ -121,7 +122,11 @@ def _compute_qc(job: FrameJob, config: QcConfig) -> tuple[float | None, list[str
 def collect_views(
     store: SessionStore, *, thumb_px: int = 160, compute_missing: bool = True, config: QcConfig | None = None
 ) -> tuple[list[FrameView], dict[str, Any]]:
-    """Per-frame views (scores, flags, thumbnails) of an open SessionStore, and its QC summary."""
+    """Per-frame views (scores, flags, thumbnails) of an open SessionStore, and its QC summary.
+    A synthetic session has neither cube nor QC: no views, and :func:`render` writes its own report
+    (``synthetic_html``), at this ``thumb_px``."""
+    if store.kind == "synthetic":
+        return [], {"kind": "synthetic", "scored": 0, "thumb_px": thumb_px}
     cfg = config or QcConfig()
     jobs = {j.image_id.split("/", 1)[1]: j for j in session_jobs(store)}
     bands = store.rig.camera.model.bands_nm
@@ -199,8 +204,41 @@ def _order(values: Sequence[str], preferred: Sequence[str]) -> list[str]:
     return [v for v in preferred if v in values] + sorted(set(values) - set(preferred))
 
 
+def twin_section(store: SessionStore, counts: Mapping[str, int]) -> str:
+    """How the twin placed the mockup (the stored registration: offset from the turntable axis, yaw,
+    tilt bias, scale, residual) and how many frames carry each of its flags."""
+    from m2s2hil.twin.checks import FLAGS as TWIN_FLAGS
+    from m2s2hil.twin.projection import Placement
+    from m2s2hil.twin.registration import registration_text, stored_registration
+
+    out = ["<h2>Twin</h2>"]
+    reg = stored_registration(store)  # the twin's placement of the mockup (docs/twin.md)
+    if reg is None:
+        out.append("<p>No registration stored (<code>m2s2hil sessions register</code> fits one; "
+                   "<code>capture --twin-checks</code> fits one during the sweep).</p>")
+    else:
+        pl = Placement.from_dict(reg.get("placement") or {})
+        rows = [("offset from the axis", f"({pl.dx_mm:+.2f}, {pl.dy_mm:+.2f}) mm"),
+                ("yaw at azimuth 0", f"{pl.yaw_deg:+.2f}°"), ("tilt bias", f"{pl.tilt_bias_deg:+.2f}°"),
+                ("scale", f"{pl.scale:.3f}"),
+                ("residual", f"{float(reg.get('residual', 1.0)):.3f} (1 − mean IoU)"),
+                ("frames", f"{int(reg.get('frames', 0))} over {float(reg.get('azimuth_span_deg', 0.0)):.0f}° "
+                 "of azimuth"), ("fitted by", str(reg.get("source", "session")))]
+        out.append("<table>" + "".join(f"<tr><th class=l>{_esc(k)}</th><td class=l>{_esc(v)}</td></tr>"
+                                       for k, v in rows) + "</table>")
+        out.append(f"<p class=reg>Registration: {_esc(registration_text(reg))}.</p>")
+    raised = {k: counts.get(k, 0) for k in TWIN_FLAGS if counts.get(k, 0)}
+    listed = ", ".join(f"<span class=flags>{_esc(k)}</span> {n}" for k, n in raised.items())
+    out.append(f"<p>Twin flags: {listed or 'none'}.</p>")
+    return "\n".join(out)
+
+
 def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str, Any]) -> str:
-    """The report's HTML text."""
+    """The report's HTML text (a synthetic session's: ``synthetic_html.render_synthetic``)."""
+    if store.kind == "synthetic":
+        from m2s2hil.analysis.report.synthetic_html import render_synthetic
+
+        return render_synthetic(store, thumb_px=int(summary.get("thumb_px", 160)))[0]
     cat = load_catalog()
     s = store.summary()
     thr = float(summary.get("threshold", QcConfig().threshold))
@@ -248,16 +286,12 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
         out.append("<p>No QC scores.</p>")
     counts = summary.get("flag_counts", {})
     out.append("<p>Flags: " + ", ".join(f"{_esc(k)} {counts.get(k, 0)}" for k in FLAGS) + ".")
-    from m2s2hil.twin.registration import registration_text, stored_registration
-
-    reg = stored_registration(store)  # the twin's placement of the mockup (docs/twin.md)
-    if reg is not None:
-        out.append(f"<p>Registration: {_esc(registration_text(reg))}.</p>")
     if summary.get("computed_at_report"):
         out.append(
             f" {summary['computed_at_report']} frame(s) had no stored QC and were scored at report time."
         )
     out.append("</p>")
+    out.append(twin_section(store, counts))
 
     lights = _order([v.lighting for v in views], list(cat.lighting))
     elevs = _order([v.elevation for v in views], list(cat.elevations))
@@ -341,8 +375,15 @@ def write_session_report(
     compute_missing: bool = True,
     config: QcConfig | None = None,
 ) -> tuple[Path, dict[str, Any]]:
-    """Write the HTML report (default ``<session folder>/report.html``); returns (path, QC summary)."""
-    views, summary = collect_views(store, thumb_px=thumb_px, compute_missing=compute_missing, config=config)
+    """Write the HTML report (default ``<session folder>/report.html``); returns (path, QC summary).
+    A synthetic session gets its own report (``synthetic_html``: renders and masks, no QC)."""
     path = Path(out) if out is not None else Path(store.path) / "report.html"
+    if store.kind == "synthetic":
+        from m2s2hil.analysis.report.synthetic_html import render_synthetic
+
+        text, summary = render_synthetic(store, thumb_px=thumb_px)
+        write_text_atomic(path, text)
+        return path, summary
+    views, summary = collect_views(store, thumb_px=thumb_px, compute_missing=compute_missing, config=config)
     write_text_atomic(path, render(store, views, summary))
     return path, summary

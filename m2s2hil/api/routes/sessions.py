@@ -25,6 +25,7 @@ from ..common import (
 )
 from ..sse import session_events
 from ..streams import BUSY, SlotEventSource, streams_of
+from . import synthetic
 
 router = APIRouter(tags=["sessions"])
 
@@ -65,12 +66,17 @@ def list_sessions(
     """Sessions under the data root, newest first (filters are exact, case-insensitive for names)."""
     items, total = mg.reads.sessions(state=state, satellite=satellite, build=build, offset=offset,
                                      limit=limit)
+    # a render (POST /synthetic) this daemon knows: its views, not a plan
+    items = [synthetic.live_status(mg, s["session_id"]) or s for s in items]
     return {"items": [status_out(s) for s in items], "total": total, "offset": offset, "limit": limit}
 
 
 @router.get("/sessions/{session_id}", response_model=m.SessionStatus, responses=NOT_FOUND)
 async def get_session(mg: Manager, session_id: SessionId) -> dict:
     """Status snapshot: state, progress, ETA, pose, lamps, faults."""
+    syn = await synthetic.status_of(mg, session_id)  # a render (POST /synthetic): its own progress
+    if syn is not None:
+        return status_out(syn)
     job = mg.job(session_id)
     if job is not None and job.engine is not None:
         # In memory, no I/O: answered on the event loop (no thread hop, fewer GIL hand-overs
@@ -81,7 +87,8 @@ async def get_session(mg: Manager, session_id: SessionId) -> dict:
 
 def _control(action: Literal["pause", "resume", "abort"], doc: str) -> None:
     def endpoint(mg: Manager, session_id: SessionId) -> dict:
-        return status_out(mg.control(session_id, action))
+        syn = synthetic.control_of(mg, session_id, action)  # a render: abort only, never the engine
+        return status_out(syn if syn is not None else mg.control(session_id, action))
 
     endpoint.__doc__ = doc
     router.add_api_route(f"/sessions/{{session_id}}/{action}", endpoint, methods=["POST"],
@@ -119,5 +126,10 @@ async def session_events_stream(
     streams = streams_of(request)
     if not streams.sse.acquire():
         return streams.busy(streams.sse)
-    return SlotEventSource(streams.sse, session_events(mg, session_id, last_event_id), ping=15,
+    events = (synthetic.events_of(mg, session_id, last_event_id)
+              or session_events(mg, session_id, last_event_id))
+    return SlotEventSource(streams.sse, events, ping=15,
                            send_timeout=streams.limits.send_timeout_s, headers={"Cache-Control": "no-store"})
+
+
+router.include_router(synthetic.router)  # POST /synthetic: a session of its own kind, served by these routes
