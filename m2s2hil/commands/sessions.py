@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -69,21 +70,50 @@ def register_cmd(
     root: Path | None = typer.Option(None, "--root", help="data root"),
     max_frames: int = typer.Option(24, "--max-frames", min=3, max=500,
                                    help="frames to fit, spread over the sweep"),
+    relabel: bool = typer.Option(True, "--relabel/--no-relabel",
+                                 help="rewrite every frame's projected labels at the refined placement"),
 ) -> None:
-    """Register the twin to a session's frames (offset, yaw, tilt bias, scale) and store it."""
+    """Register the twin to a session's frames (offset, yaw, tilt bias, scale) and store it;
+    then (unless --no-relabel) re-project every frame's labels at the new placement."""
     from m2s2hil.store.catalogue import default_data_root
     from m2s2hil.store.session import SessionStore
-    from m2s2hil.twin.registration import register_session
+    from m2s2hil.twin.registration import EVENT_KIND, register_session
 
     store = SessionStore.open(root or default_data_root(), session, mode="write")
     try:
-        reg = register_session(store, max_frames=max_frames)
+        if relabel:  # a damaged label file stops us before anything is written
+            from m2s2hil.store.relabel import check_label_file
+
+            for fr in store.frames():
+                check_label_file(store, fr.event_id)
+        reg = register_session(store, max_frames=max_frames, record=False)
+        event = store.record_event(EVENT_KIND, reg.as_dict())
+        relabelled = _relabel(store, reg, event) if relabel else None
     finally:
         store.close()
     p = reg.placement
     typer.echo(f"registered {session}: offset ({p.dx_mm:+.2f}, {p.dy_mm:+.2f}) mm, yaw {p.yaw_deg:+.2f} deg, "
                f"tilt bias {p.tilt_bias_deg:+.2f} deg, scale {p.scale:.3f}; residual {reg.residual:.3f} "
                f"over {reg.frames} frames ({reg.azimuth_span_deg:.0f} deg of azimuth)")
+    if relabelled is not None:
+        typer.echo(f"projected labels rewritten for {relabelled} frame(s) (registration event {event})")
+
+
+def _relabel(store: Any, reg: Any, event: int) -> int:
+    """Re-project every frame's labels at ``reg``'s placement and swap them in, frame by frame
+    (m2s2hil.store.relabel); the metadata names the registration event that made them."""
+    from m2s2hil.store.relabel import replace_frame_labels
+    from m2s2hil.twin.labels import session_labels
+
+    when = next((e.get("time") for e in reversed(store.events()) if e.get("seq") == event), None)
+    provenance = {"event": event, "time": when, "residual": round(float(reg.residual), 4),
+                  "frames": reg.frames, "stage": "session"}
+    n = 0
+    for event_id, pl in session_labels(store, reg):
+        replace_frame_labels(store, event_id, pl.labels, {**pl.meta(), "registration": provenance},
+                             tag=f"r{event}")
+        n += 1
+    return n
 
 
 @app.command("show")
