@@ -234,9 +234,8 @@ def test_calibration_pictures_dark_maps_and_phase_cost_map(d) -> None:
 # ----------------------------------------------------------------------------- in the browser
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
+def test_pictures_in_the_browser(d, new_page) -> None:
     from api_support import uvicorn_thread
-    from browser_support import browser
 
     from m2s2hil.api import create_app
 
@@ -251,10 +250,10 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
     import httpx
 
     app = create_app(d.manager)
-    with uvicorn_thread(app) as base, browser() as b:
+    with uvicorn_thread(app) as base:
         httpx.get(base + "/camera/live").raise_for_status()
         app.state.console.live.idle_stop_s = 0.0
-        page = b.new_page(viewport={"width": 1400, "height": 950}, bypass_csp=True)
+        page = new_page(viewport={"width": 1400, "height": 950}, bypass_csp=True)
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(base + "/")
@@ -308,8 +307,27 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
             exportProgress(d, {fraction: 0.4, done: 2, total: 5});
             return [d.querySelector('progress').value, d.textContent]; }""")
         assert bar[0] == pytest.approx(0.4) and "40% · 2 of 5 frames" in bar[1], bar
+        # the running view's coverage map repaints once when the watched session ends, even off
+        # the sessions view (where its 3 s refresh stops): the session's state as pollRun sees it
+        # is played through a route, "running" then "completed"
+        said = {"state": "running"}
+
+        def session_state(route) -> None:
+            body = route.fetch().json()
+            route.fulfill(json={**body, "state": said["state"]})
+
+        page.route(f"**/sessions/{d.sid}", session_state)
+        page.evaluate("(sid) => watch(sid)", d.sid)
+        page.wait_for_function("document.getElementById('run-state').textContent === 'running' && "
+                               f"document.getElementById('run-coverage').dataset.session === '{d.sid}'")
+        page.evaluate("() => { const b = document.getElementById('run-coverage'); b.replaceChildren();"
+                      " delete b.dataset.session; }")
+        said["state"] = "completed"
+        page.wait_for_selector("#run-coverage rect.cov-skipped", state="attached")
+        page.unroute(f"**/sessions/{d.sid}")
         # the session-end sound: a labelled checkbox, on by default, remembered; no tone when off
         page.click("#tabs button[data-view='sessions']")  # it sits under "Running"
+        shot(page, "console_run_coverage_ended.png", full_page=True)
         assert page.locator("label", has=page.locator("#sound-on")).inner_text().strip() == "sound"
         assert page.is_checked("#sound-on")
         played = page.evaluate("chime(false)")  # the page has had clicks: audio is unlocked if it can be
@@ -339,6 +357,7 @@ def test_pictures_in_the_browser(d, tmp_path: Path) -> None:
         shot(page, "console_frame_viewer_phone.png")
         assert width <= 390, f"the frame viewer is {width} px wide on a 390-px phone"
         assert stage and spec and spec["y"] >= stage["y"] + stage["height"] - 1  # stacked, not squeezed
+        page.close()  # before its server goes
     assert not errors, errors
 
 

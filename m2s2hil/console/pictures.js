@@ -212,7 +212,8 @@ const pictures = (() => {
     const info = mk("div", { class: "muted", id: "fv-info" });
     const twin = mk("div", { class: "row muted pic-legend", id: "fv-twin", "aria-live": "polite" });
     twin.style.minHeight = "1.5em";  // (CSSOM: the page's CSP refuses style attributes)
-    card.append(bar, info, twin, body); ov.append(card); document.body.append(ov);
+    const placed = mk("div", { class: "muted", id: "fv-placement", title: PLACEMENT_HELP });
+    card.append(bar, info, twin, placed, body); ov.append(card); document.body.append(ov);
     fv.panel = spectrumPanel(side, "Spectrum");
     mode.addEventListener("change", () => { fv.mode = mode.value; loadImage(); });
     // zoom at the pointer with the wheel; pan by dragging; pinch with two fingers
@@ -262,6 +263,52 @@ const pictures = (() => {
     lab.append(cb, document.createTextNode(" twin labels"));
     return lab;
   }
+  // How the twin placed the mockup, from the frames' metadata (GET /sessions/{id}/frames): the
+  // sweep's registration as it stood when a frame was checked (qc.twin.registration), else the
+  // placement a frame's projected labels were drawn with (qc.projected_labels, whose confidence
+  // is 1 − the residual). This frame's own, else the nearest frame's before it, else after it.
+  const PLACEMENT_HELP = "the registered twin: the mockup's centre off the turntable axis (x right, y away " +
+    "from the camera at azimuth 0), its yaw at azimuth 0, the tilt stage's bias, the scale, and the residual " +
+    "(1 − the mean IoU of the twin's silhouettes with the frames' masks; docs/twin.md)";
+  const finite = (v) => (typeof v === "number" && Number.isFinite(v) ? v : null);
+  const isObj = (v) => v !== null && typeof v === "object" && !Array.isArray(v);
+  function placementOf(meta) {
+    const qc = isObj(meta) && isObj(meta.qc) ? meta.qc : {};
+    const reg = isObj(qc.twin) ? qc.twin.registration : null;
+    if (isObj(reg) && isObj(reg.placement)) {
+      return { p: reg.placement, residual: finite(reg.residual), frames: finite(reg.frames),
+        span: finite(reg.azimuth_span_deg), via: "registration" };
+    }
+    const lab = isObj(qc.projected_labels) ? qc.projected_labels : null;
+    if (lab && isObj(lab.placement)) {
+      const c = finite(lab.confidence);
+      return { p: lab.placement, residual: c === null ? null : 1 - c, frames: null, span: null, via: "labels" };
+    }
+    return null;
+  }
+  function placementText(pl) {
+    const f = (v, digits, unit = "", signed = true) => {
+      const x = finite(v); return x === null ? "?" : (signed && x >= 0 ? "+" : "") + x.toFixed(digits) + unit;
+    };
+    const p = pl.p;
+    let t = `twin placement: offset (${f(p.dx_mm, 2)}, ${f(p.dy_mm, 2)}) mm from the axis · yaw ${f(p.yaw_deg, 2, "°")}` +
+      ` · tilt bias ${f(p.tilt_bias_deg, 2, "°")} · scale ${f(p.scale, 3, "", false)}` +
+      ` · residual ${pl.residual === null ? "?" : pl.residual.toFixed(3)}`;
+    if (pl.frames !== null) t += ` over ${pl.frames} frames` + (pl.span !== null ? ` (${pl.span.toFixed(0)}° of azimuth)` : "");
+    return t;
+  }
+  function showPlacement(it) {
+    const box = byId("fv-placement"); if (!box) return;
+    const i = fv.items.indexOf(it);
+    let at = placementOf(it.meta) ? it : null;
+    for (let k = i - 1; !at && k >= 0; k--) if (placementOf(fv.items[k].meta)) at = fv.items[k];
+    for (let k = i + 1; !at && k < fv.items.length; k++) if (placementOf(fv.items[k].meta)) at = fv.items[k];
+    if (!at) { box.textContent = ""; box.hidden = true; return; }
+    const pl = placementOf(at.meta);
+    box.hidden = false;
+    box.textContent = placementText(pl) + (at === it ? "" : ` (as of frame ${at.n})`) +
+      (pl.via === "labels" ? " · from the projected labels" : "");
+  }
   async function loadTwin() {
     const want = [fv.sid, fv.n].join("/"); const box = byId("fv-twin"); const cb = byId("fv-labels");
     if (fv.labels) { URL.revokeObjectURL(fv.labels.src); fv.labels = null; }
@@ -284,7 +331,11 @@ const pictures = (() => {
         if (want !== [fv.sid, fv.n].join("/")) { URL.revokeObjectURL(img.src); return; }
         fv.labels = img; cb.disabled = false; draw();
       } catch (e) { parts.push(mk("span", { class: "bad" }, "labels: " + e.message)); }
-    } else if (t.checked) parts.push(mk("span", {}, "· no projected labels (the twin is not registered yet)"));
+    } else if (t.checked) {
+      const placed = byId("fv-placement");  // shown already when the twin has a placement (showPlacement)
+      parts.push(mk("span", {}, placed && !placed.hidden ? "· no projected labels on this frame"
+        : "· no projected labels (the twin is not registered yet)"));
+    }
     box.replaceChildren(...parts);
   }
   function pinchState() {
@@ -318,7 +369,7 @@ const pictures = (() => {
     byId("fv-info").textContent = `${it.event_id} · ${ev.lighting ?? ""} ${ev.elevation ?? ""} az ${ev.nominal_azimuth_deg ?? ev.azimuth_deg ?? "?"}°` +
       (qc.score != null ? ` · QC ${Number(qc.score).toFixed(3)}` : "") + (qc.flags && qc.flags.length ? " ⚑ " + qc.flags.join(", ") : "");
     byId("fv-prev").disabled = fv.items[0].n === it.n; byId("fv-next").disabled = fv.items[fv.items.length - 1].n === it.n;
-    loadImage(); loadTwin();
+    loadImage(); showPlacement(it); loadTwin();
     // the centre cell's spectrum at once (it also tells the sensor's size), or the last region
     fv.region = fv.region && fv.sensor ? fv.region : null;
     frameSpectrum();
@@ -499,11 +550,20 @@ const pictures = (() => {
     box.dataset.session = sid;
   }
   // follow the session the views show (console.js keeps them in state.watched / state.browserId)
-  const shown = { run: null, browser: null, runAt: 0 };
+  const shown = { run: null, browser: null, runAt: 0, sawActive: false };
+  const ENDED = ["completed", "completed_with_gaps", "failed", "aborted", "cancelled", "estopped"];
   function coverageTick() {
     const run = byId("run-coverage"), br = byId("b-coverage");
     const now = Date.now();
-    if (run && state.watched && (shown.run !== state.watched || (now - shown.runAt > 3000 && isActive("view-sessions")))) {
+    // once more when the watched session ends (pollRun writes its state into #run-state): a short
+    // session can finish between the 3 s refreshes and would otherwise keep showing frames pending
+    const ended = ENDED.includes((byId("run-state") || {}).textContent);
+    if (shown.run !== state.watched) shown.sawActive = false;
+    const justEnded = ended && shown.sawActive;
+    if (!ended && shown.run === state.watched) shown.sawActive = true;
+    if (run && state.watched && (shown.run !== state.watched || justEnded || (now - shown.runAt > 3000 && isActive("view-sessions")))) {
+      if (shown.run !== state.watched && !ended) shown.sawActive = true;
+      if (justEnded) shown.sawActive = false;
       shown.run = state.watched; shown.runAt = now; coverageInto(run, state.watched);
     }
     if (br && state.browserId && shown.browser !== state.browserId) { shown.browser = state.browserId; coverageInto(br, state.browserId); }
