@@ -11,6 +11,8 @@ from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.segmenters.normalise import (
     PLATEAU_REL_TOL,
     clipped_bands,
+    guided_denoise,
+    neighbour_angle_deg,
     normalise_cube,
     pool_size,
     reliability,
@@ -104,13 +106,62 @@ def test_pool_size_follows_the_measured_noise():
     np.testing.assert_allclose(means[2], [(3 + 4) / 2, (9 + 10) / 2])
 
 
-def test_dim_cube_is_pooled_into_superpixels_and_the_reference_is_not():
+def test_dim_cube_is_denoised_and_the_reference_is_not():
     dim, _ = exposed_scene(0.02, (96, 96), 3)
-    result = SpectralSegmenter().analyse(dim)
-    assert result.pooled > 1 and result.n_materials == 3
+    for denoise in ("guided", "slic"):
+        result = SpectralSegmenter(denoise=denoise).analyse(dim)
+        assert result.pooled > 1 and result.n_materials == 3, denoise
     assert SpectralSegmenter(pool_target_deg=0).analyse(dim).pooled == 1
     bright, _ = exposed_scene(0.6, (96, 96), 3)
     assert SpectralSegmenter().analyse(bright).pooled == 1  # noise below the target: per pixel
+    with pytest.raises(AnalysisInputError):
+        SpectralSegmenter(denoise="median")  # type: ignore[arg-type]
+    with pytest.raises(AnalysisInputError):
+        SpectralSegmenter(fit_stride=-1)
+
+
+def unit_of(cube: np.ndarray) -> np.ndarray:
+    return cube / np.maximum(np.linalg.norm(cube, axis=0, keepdims=True), 1e-12)
+
+
+def test_guided_filter_averages_the_noise_and_keeps_the_edge():
+    # two materials of different shape, side by side, at a low signal: flat halves, one straight edge
+    rng = np.random.default_rng(3)
+    a, b = np.linspace(1.0, 2.0, 10), np.linspace(2.0, 1.0, 10)
+    clean = np.empty((10, 48, 48))
+    clean[:, :, :24] = 20.0 * a[:, None, None]
+    clean[:, :, 24:] = 20.0 * b[:, None, None]
+    noisy = clean + rng.normal(0.0, 2.0, clean.shape)
+    fg = np.ones((48, 48), dtype=bool)
+    out, radius = guided_denoise(noisy, fg, per=9)
+    assert radius == 1
+    inside = fg.copy()
+    inside[:, 20:28] = False  # away from the edge
+    before = neighbour_angle_deg(unit_of(noisy), inside)
+    after = neighbour_angle_deg(unit_of(out), inside)
+    assert after < 0.5 * before  # a 3×3 box: the noise falls by about 3
+    # next to the edge each side keeps its own spectrum (a box filter would mix them half and half)
+    for col, ref in ((23, a), (24, b)):
+        cos = unit_of(out)[:, :, col].T @ (ref / np.linalg.norm(ref))
+        assert np.degrees(np.arccos(np.clip(np.median(cos), -1, 1))) < 3.0
+
+
+def test_noise_foreground_finds_a_shadowed_face_the_log_rule_misses():
+    # a dark backdrop at the noise floor (rectified, as after dark subtraction), a lit face and a
+    # face in the spotlight's shadow at about four noise SDs of energy
+    rng = np.random.default_rng(5)
+    cube = np.clip(rng.normal(0.0, 1.0, (10, 64, 64)), 0.0, None)
+    cube[:, 10:30, 10:50] += 60.0
+    cube[:, 34:54, 10:50] += 4.0
+    shadow = np.zeros((64, 64), dtype=bool)
+    shadow[34:54, 10:50] = True
+    log_rule, _ = foreground_mask(cube, "backdrop")
+    noise_rule, _ = foreground_mask(cube, "noise")
+    assert log_rule[shadow].mean() < 0.5  # the old rule hands most of the shadow to the backdrop
+    assert noise_rule[shadow].mean() > 0.95
+    backdrop = np.ones((64, 64), dtype=bool)
+    backdrop[8:56, 8:52] = False
+    assert noise_rule[backdrop].mean() < 0.01
 
 
 def test_clipped_bands_stay_with_a_per_pixel_mask():

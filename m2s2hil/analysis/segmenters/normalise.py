@@ -18,6 +18,8 @@ carry a shape (issue 23, docs/evaluation.md "Robustness"):
   neighbours (both in the backdrop), σ² = mean(d²)/2 — robust to the backdrop's own level and
   not quantised to zero as a MAD of super-pixel values is.
 
+``guided_denoise`` is the edge-preserving smoothing the segmenter applies where the SNR is low.
+
 ``normalise_cube`` divides by the white reference (per band or per pixel) and by
 exposure × gain where given: the cube becomes reflectance-like, so the same object at another
 exposure gives the same numbers (shape and brightness coordinate alike).
@@ -169,3 +171,37 @@ def superpixel_means(cube: np.ndarray, segments: np.ndarray) -> np.ndarray:
     flat = cube.reshape(cube.shape[0], -1)
     return np.stack([np.bincount(ids, weights=flat[b], minlength=n) for b in range(cube.shape[0])], axis=1) \
         / count[:, None]
+
+
+def guided_denoise(cube: np.ndarray, fg: np.ndarray, per: int, *, edge_sigmas: float = 3.0
+                   ) -> tuple[np.ndarray, int]:
+    """Edge-preserving smoothing of the foreground (``cv2.ximgproc.guidedFilter``) averaging about
+    ``per`` pixels where the spectrum is flat; returns the cube and the filter radius.
+
+    Guide: the foreground's first three principal components of the unit spectra, each scaled by
+    its own noise σ (neighbour differences), so ``eps`` = ``edge_sigmas``² is in units of the noise:
+    a window whose guide varies by less than that is averaged (noise), one that varies more (a
+    material edge) follows the guide and is kept. The radius gives a (2r + 1)² box of ≥ ``per``.
+    """
+    import cv2
+
+    radius = max(1, int(np.ceil((np.sqrt(per) - 1) / 2)))
+    unit = cube / np.maximum(np.linalg.norm(cube, axis=0, keepdims=True), 1e-12)
+    x = unit[:, fg].T
+    mean = x.mean(axis=0)
+    _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
+    comps = np.einsum("kb,bhw->khw", vt[:3], unit - mean[:, None, None])
+    both = fg[:, 1:] & fg[:, :-1]
+    d = (comps[:, :, 1:] - comps[:, :, :-1])[:, both]
+    sigma = np.sqrt(np.maximum(np.mean(d**2, axis=1) / 2.0, 1e-12))
+    guide = np.ascontiguousarray(np.moveaxis(comps / sigma[:, None, None], 0, -1), dtype=np.float32)
+    guide[~fg] = 0.0
+    out = np.asarray(cube, dtype=np.float64).copy()
+    # normalised filtering: the backdrop does not bleed into the rim (weights = foreground)
+    m = fg.astype(np.float32)
+    gf = cv2.ximgproc.createGuidedFilter(guide, radius, float(edge_sigmas) ** 2)
+    norm = gf.filter(m)
+    for b in range(cube.shape[0]):
+        band = (cube[b] * fg).astype(np.float32)
+        out[b][fg] = (gf.filter(band) / np.maximum(norm, 1e-6))[fg]
+    return out, radius
