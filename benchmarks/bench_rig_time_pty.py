@@ -19,7 +19,8 @@ real camera does not cost the host), so on a loaded machine the real-time figure
 grows with the load (printed: the 1-minute load average and the run's CPU seconds); the moves
 alone show whether the motion model holds. A continuous pass streams frames at the sensor's rate:
 in real time the simulated camera must render them as fast, which a loaded 2-core machine cannot
-(frames are dropped and marks missed: the run retries), so it is off by default.
+(frames are dropped and marks missed: the run retries), so it is off by default; at ``--size 64``
+the rendering is cheap enough for it to run in real time there too.
 """
 
 from __future__ import annotations

@@ -306,7 +306,9 @@ def test_continuous_speed_blur_and_time():
     assert c.blur_deg["weak"] == pytest.approx(10.0)
     assert c.blur_px["weak"] == pytest.approx(500 * math.radians(10.0))
     assert c.runup_deg["weak"] == pytest.approx(20.0 ** 2 / (2 * 120))
-    assert c.breakdown["sweep"] == pytest.approx(350 / 20 + 20 / 120)
+    # from rest at the first mark (no run-up before it): accelerate to 20 deg/s and cover 350 deg,
+    # then the frame past the last mark whose read-out completes it (2 intervals + 1/65 s)
+    assert c.breakdown["sweep"] == pytest.approx(350 / 20 + 20 / 240 + 2 * 0.5 + 1 / 65)
     assert c.total_s >= c.lower_bound_s
     limited = estimate_continuous(s, rig, radius_px=500, max_blur_px=2.0)
     assert limited.blur_px["weak"] == pytest.approx(2.0)
@@ -416,3 +418,17 @@ def test_overlapped_estimate_hides_each_readout_under_the_next_move():
     assert plain.total_s - over.total_s == pytest.approx(3 * readout)
     assert over.lower_bound_s <= over.total_s < plain.total_s
     assert over.breakdown["motion"] == plain.breakdown["motion"]
+
+
+def test_continuous_sweeps_are_ordered_by_the_continuous_estimate():
+    from m2s2hil.plan.order import _candidates
+
+    rig = make_rig()
+    s = Sweep(satellite="voyager", build="B3", mode="continuous", azimuth_step_deg=90)
+    events = s.expand(rig)
+    chosen = estimate_continuous(s, rig, radius_px=400.0, events=events).total_s
+    costs = [estimate_continuous(s, rig, radius_px=400.0, events=steps).total_s  # type: ignore[arg-type]
+             for _o, steps in _candidates(s, rig)]
+    assert chosen == pytest.approx(min(costs))
+    assert max(costs) > min(costs) + 0.1  # the order matters: the spotlight's warm-up, the tilt turns
+    assert chosen >= s.physical_floor(rig).total_s

@@ -1,11 +1,14 @@
 """Continuous capture: the steps for ``mode = "continuous"``, one pass per lighting condition and tilt.
 
-Per pass the lamps of the condition go on and the tilt moves; with auto exposure the
-condition is metered at the pass's first mark; the turntable goes to the run-up's start while
-the tilt settles and the lamps warm, and starts its run-up early enough that the first frame
-a mark can take begins just as both are done (never before); then it turns at ω while the
-camera streams, and the frame nearest each azimuth mark (by timestamp and read-back) is
-kept (the matching is :func:`m2s2hil.engine.marks.run_pass`). Blur ω·t_exp is recorded per
+Per pass the lamps of the condition go on (usually already: the previous pass switched them
+once its last frame was read, so they warm while it brakes) and the tilt moves; with auto
+exposure the condition is metered at the pass's first mark. Consecutive passes run in opposite
+directions (the plan's snake), so the turntable starts the next pass from where it came to rest,
+beyond the last mark, with no move (:func:`m2s2hil.engine.marks.pass_start`); it starts turning
+early enough that the first frame a mark can take begins just as the lamps are warm and the tilt
+has settled (never before), and the camera's stream starts during the run-up; then it turns at ω
+while the camera streams, and the frame nearest each azimuth mark (by timestamp and read-back)
+is kept (the matching is :func:`m2s2hil.engine.marks.run_pass`). Blur ω·t_exp is recorded per
 frame (``meta["continuous"]``) and per pass (journal event ``continuous_pass``).
 
 The turntable's continuous rotation is the capability the rig recorded when it opened
@@ -21,6 +24,7 @@ azimuth step).
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass
@@ -30,9 +34,9 @@ import numpy as np
 
 from m2s2hil.config import RigConfig
 from m2s2hil.drivers.errors import FrameIncomplete
-from m2s2hil.drivers.interfaces import ContinuousRotation, Frame
+from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.engine.exposure_search import ExposureResult
-from m2s2hil.engine.marks import Match, PassReport, blur_estimate, run_pass, run_up_deg
+from m2s2hil.engine.marks import Match, PassReport, blur_estimate, pass_start, run_pass
 from m2s2hil.engine.messages import FrameCaptured, StepGen
 from m2s2hil.engine.steps import CaptureKit, SharedSteps
 from m2s2hil.errors import UsageError
@@ -74,20 +78,6 @@ class SpeedSettings:
         return min(sweep.azimuth_step_deg / 2, max(0.1, 1.5 * speed * period))
 
 
-class _TimedRotation:
-    """The turntable's rotation, noting when it was started (for the next pass's timing)."""
-
-    def __init__(self, rotation: ContinuousRotation, now: Callable[[], float], called_s: float) -> None:
-        self._rotation, self._now = rotation, now
-        self.called_s = called_s
-        self.started_s: float | None = None
-
-    def rotate(self, speed_dps: float, direction: int = +1) -> None:
-        self._rotation.rotate(speed_dps, direction=direction)
-        if self.started_s is None:
-            self.started_s = self._now()
-
-
 class ContinuousSteps(SharedSteps):
     """:class:`~m2s2hil.engine.steps.CaptureSteps` for ``mode = "continuous"``: a unit is what
     is still to do of one pass. Keeps the pass reports and the per-frame blur for the summary."""
@@ -97,7 +87,9 @@ class ContinuousSteps(SharedSteps):
         self.settings = settings
         self.blur_deg: list[float] = []  # per stored frame
         self.passes: list[dict[str, Any]] = []  # per pass: its report
-        self._startup_s: float | None = None  # least time from run_pass's call to the rotation
+        self._stream_start_s: float | None = None  # least start-up of the camera's stream seen
+        self._rest_deg: float | None = None  # the turntable's read-back where the last pass stopped
+        self._next_lighting: dict[int, str] | None = None  # pass index -> the next pass's lighting
 
     def setup(self) -> None:
         if self.rig.rotation is None:
@@ -115,6 +107,14 @@ class ContinuousSteps(SharedSteps):
         yield from self.lit_unit()
         while not (yield from self._capture_pass(unit, attempt)):
             pass  # the lens cap went on and off for a dark meanwhile: lamps and tilt again
+
+    def recover(self) -> None:
+        super().recover()
+        self._rest_deg = None  # a fault may have moved it: the next pass moves and verifies
+
+    def forget(self) -> None:
+        super().forget()
+        self._rest_deg = None
 
     def lower_bound_s(self) -> float:
         return self.settings.estimate(self.kit.sweep, self.rig.config).lower_bound_s
@@ -149,18 +149,22 @@ class ContinuousSteps(SharedSteps):
             assert ev.azimuth_deg is not None
             marks.setdefault(ev.azimuth_deg, []).append(ev)
         window = settings.match_window(sweep, config, speed, exposure)
-        start, lead_s = self._pass_start(list(marks), speed, window, exposure)
-        # Overlap: the turntable heads for the run-up's start while the tilt settles, the lamps
-        # warm and the darks are looked up (run_pass's own move to it then only verifies it).
+        start, rest = self._pass_start(list(marks), speed, window)
+        # Overlap: the turntable heads for its start (when it must move at all) while the tilt
+        # settles, the lamps warm and the darks are looked up (run_pass then only verifies it).
         # Not alongside the tilt move: on GRBL both axes share one planner, whose blocks run
         # one after the other and whose status says Run until the last one ends [src:planner.c],
         # so the tilt's arrival could not be watched while the turntable moved.
-        self.ops.start_move("turntable", start)
+        tol = config.axes["turntable"].tolerance_deg
+        if rest is None or abs(rest - start) > tol / 2:
+            rest = None
+            self.ops.start_move("turntable", start)
         dark = yield from kit.darks.for_setting(exposure, first.gain)
         if kit.darks.lens_cycles != cycles:
             return False
         kit.camera.configure(exposure, first.gain)
         blur = blur_estimate(speed, exposure, settings.radius_px)
+        self._rest_deg = None  # until this pass reports where it stopped
 
         def on_match(match: Match) -> Iterator[FrameCaptured]:
             evs = sorted(match.key, key=lambda e: e.frame)
@@ -183,27 +187,20 @@ class ContinuousSteps(SharedSteps):
         def on_frame(frame: Frame) -> dict[str, Any]:
             return {"clock_s": clock.monotonic(), "wall": clock.wall(), "truth": kit.frames.truth()}
 
-        self.ops.move("turntable", start)  # verified; the run-up starts from rest here
-        # The run-up takes lead_s to the earliest frame a mark may take: the rotation may start
-        # that much before the tilt has settled and the lamps are warm, never a frame earlier.
-        # run_pass starts the camera's stream before the rotation (0.3 s on the simulated
-        # TOUCAN): that too runs under the wait, by the least start-up seen so far (none yet on
-        # the first pass), 80 % of it, so a faster start can only make the first frame later.
-        lead_s += 0.8 * self._startup_s if self._startup_s is not None else 0.0
-        wait = max(settle_until, self.ops.lamps_ready_at()) - lead_s - clock.monotonic()
-        if wait > 0:
-            clock.sleep(wait)
-        timed = _TimedRotation(rotation, clock.monotonic, clock.monotonic())
         report: PassReport = yield from run_pass(
-            self.rig, self.ops, timed, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
+            self.rig, self.ops, rotation, marks=[(a, evs) for a, evs in marks.items()], speed_dps=speed,
             exposure_s=exposure, k=sweep.frames_per_pose,
             window_deg=window,
             on_match=on_match, on_frame=on_frame,
             frame_timeout_s=exposure + kit.camera.snap_timeout_s,
+            start_deg=start, rest_deg=rest,
+            ready_at=max(settle_until, self.ops.lamps_ready_at()),
+            stream_start_s=self._stream_start_s, on_done=self._switch_ahead(first),
         )
-        if timed.started_s is not None:
-            got = timed.started_s - timed.called_s
-            self._startup_s = got if self._startup_s is None else min(self._startup_s, got)
+        self._rest_deg = report.rest_deg
+        if report.stream_start_s is not None:
+            got = report.stream_start_s
+            self._stream_start_s = got if self._stream_start_s is None else min(self._stream_start_s, got)
         info = {"pass_index": first.pass_index, "lighting": first.lighting, "elevation": first.elevation,
                 "exposure_s": exposure, **report.to_dict(), **blur.to_dict()}
         self.passes.append(info)
@@ -220,24 +217,34 @@ class ContinuousSteps(SharedSteps):
             )
         return True
 
-    def _pass_start(self, marks: list[float], speed: float, window_deg: float,
-                    exposure_s: float) -> tuple[float, float]:
-        """Where :func:`~m2s2hil.engine.marks.run_pass` starts the run-up to ``marks`` (as it
-        computes it) and how long the turntable then takes, from rest at ``accel_dps2``, to
-        the start of the earliest exposure that may be matched (mid-exposure at the first mark
-        less the window; one whole exposure earlier, to be safe)."""
+    def _pass_start(self, marks: list[float], speed: float, window_deg: float) -> tuple[float, float | None]:
+        """Where :func:`~m2s2hil.engine.marks.run_pass` starts turning towards ``marks``, and
+        where the turntable rests now if known: where the last pass stopped, the verified pose,
+        or (at the first pass) its read-back while it stands still. It starts from there when
+        that is on this pass's near side (the snake's turn), without a move."""
         ax = self.rig.config.axes["turntable"]
+        rest = self._rest_deg if self._rest_deg is not None else self.ops.pose()["turntable"]
+        if rest is None and not self.rig.turntable.is_moving():
+            rest = float(self.rig.turntable.position())
         direction = -1 if len(marks) > 1 and marks[0] > marks[-1] else 1
         first = min(marks) if direction > 0 else max(marks)
-        run_up = run_up_deg(speed, ax.accel_dps2)
-        start = min(ax.max_deg, max(ax.min_deg, first - direction * run_up))
-        ramp = speed * speed / (2 * ax.accel_dps2)  # covered while accelerating, in speed/accel s
-        reach = max(0.0, abs(first - start) - window_deg)
-        if reach <= ramp:
-            lead = math.sqrt(2 * reach / ax.accel_dps2)
-        else:
-            lead = speed / ax.accel_dps2 + (reach - ramp) / speed
-        return start, max(0.0, lead - exposure_s)
+        return pass_start(first, direction, speed, ax.accel_dps2, window_deg, rest,
+                          (ax.min_deg, ax.max_deg)), rest
+
+    def _switch_ahead(self, ev: CaptureEvent) -> Callable[[], object] | None:
+        """What switches the plan's next pass's lamps once this pass has its last frame (so
+        they warm while the turntable brakes and turns back); None when it keeps these lamps.
+        Lamps switched for a pass that does not come next (a retry, a resume) cost only time:
+        each pass sets its own lamps and waits for those still warming."""
+        if self._next_lighting is None:
+            order = sorted({(e.pass_index, e.lighting) for e in self.kit.sweep.expand(self.rig.config)
+                            if e.kind == "frame" and e.lighting is not None})
+            self._next_lighting = {p: nxt for (p, _l), (_p, nxt) in itertools.pairwise(order)}
+        nxt = self._next_lighting.get(ev.pass_index)
+        if nxt is None or nxt == ev.lighting:
+            return None
+        channels = frozenset(self.rig.config.lamp_channels(nxt))
+        return lambda: self.ops.set_lamps(channels)
 
     def _exposure_for_pass(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
         exposure = self.kit.exposure
@@ -245,5 +252,6 @@ class ContinuousSteps(SharedSteps):
             return exposure.exposure(ev)
         assert ev.azimuth_deg is not None
         self.ops.move("turntable", ev.azimuth_deg)  # meter at the pass's first mark
+        self._rest_deg = None  # it stands at the verified pose now
         self.ops.wait_ready(self.rig.clock.monotonic())
         return exposure.exposure(ev)

@@ -37,11 +37,16 @@ if TYPE_CHECKING:
 
 
 class AngleTrack:
-    """Read-back samples (host time, degrees) of an axis turning (at constant speed, mostly)."""
+    """Read-back samples (host time, degrees) of an axis turning (at constant speed, mostly).
 
-    def __init__(self, window: int = 32) -> None:
+    ``accel_dps2`` bounds the axis's acceleration: between the first two samples (the start of
+    a run-up, when no change of slope has been seen yet) the interpolation is off by at most
+    what that acceleration bends the path, and the uncertainty says so."""
+
+    def __init__(self, window: int = 32, accel_dps2: float = 0.0) -> None:
         self._samples: collections.deque[tuple[float, float]] = collections.deque(maxlen=window)
         self._half: collections.deque[float] = collections.deque(maxlen=window)
+        self.accel_dps2 = accel_dps2
 
     def add(self, t: float, deg: float, half_width_s: float = 0.0) -> None:
         """A read-back ``deg`` known to have been taken within ``t ± half_width_s`` (the
@@ -51,8 +56,10 @@ class AngleTrack:
 
     def uncertainty_at(self, t: float) -> float:
         """How far :meth:`angle_at` may be off (degrees): the bracketing samples' time
-        uncertainty at their slope, plus, beyond the samples, the change of slope between the
-        last two intervals carried over the extrapolated time."""
+        uncertainty at their slope; between them, how far an acceleration bends the path from
+        the chord (``a·(t - t0)·(t1 - t)/2``, with ``a`` the change of slope from the interval
+        before, or the axis's bound when there is none); beyond the samples, the change of slope
+        between the last two intervals carried over the extrapolated time."""
         s, h = self._samples, self._half
         if len(s) < 2:
             raise ValueError("need at least two read-back samples")
@@ -60,6 +67,12 @@ class AngleTrack:
         (t0, a0), (t1, a1) = s[i - 1], s[i]
         slope = abs(a1 - a0) / (t1 - t0) if t1 > t0 else 0.0
         out = slope * max(h[i - 1], h[i])
+        if t0 < t < t1:
+            accel = self.accel_dps2
+            if i >= 2 and t0 > s[i - 2][0]:
+                before = (a0 - s[i - 2][1]) / (t0 - s[i - 2][0])
+                accel = abs((a1 - a0) / (t1 - t0) - before) / ((t1 - s[i - 2][0]) / 2)
+            out += accel * (t - t0) * (t1 - t) / 2
         if t > t1 and len(s) >= 3 and t1 > t0 and t0 > s[-3][0]:
             prev = (a0 - s[-3][1]) / (t0 - s[-3][0])
             out += abs((a1 - a0) / (t1 - t0) - prev) * (t - t1)
@@ -67,6 +80,20 @@ class AngleTrack:
 
     def __len__(self) -> int:
         return len(self._samples)
+
+    def last_time(self) -> float:
+        """When the latest sample was taken (-inf before any)."""
+        return self._samples[-1][0] if self._samples else -math.inf
+
+    def steady(self, tolerance_dps: float = 0.2) -> bool:
+        """The last two intervals had the same slope (within ``tolerance_dps``, a few read-back
+        quanta): beyond the samples the path goes straight on, so extrapolating is exact."""
+        s = self._samples
+        if len(s) < 3 or not s[-3][0] < s[-2][0] < s[-1][0]:
+            return False
+        before = (s[-2][1] - s[-3][1]) / (s[-2][0] - s[-3][0])
+        last = (s[-1][1] - s[-2][1]) / (s[-1][0] - s[-2][0])
+        return abs(last - before) <= tolerance_dps
 
     def fit(self) -> tuple[float, float]:
         """``(a0, ω)`` with ``angle(t) = a0 + ω·t``; needs two samples at different times."""
@@ -240,6 +267,25 @@ def run_up_deg(speed_dps: float, accel_dps2: float, margin_s: float = 0.2) -> fl
     return v * v / (2 * accel_dps2) + v * margin_s
 
 
+def reach_s(distance_deg: float, speed_dps: float, accel_dps2: float) -> float:
+    """Time from rest to cover ``distance_deg`` accelerating at ``accel_dps2`` up to ``speed_dps``."""
+    d, v = max(0.0, distance_deg), abs(speed_dps)
+    ramp = v * v / (2 * accel_dps2)
+    return math.sqrt(2 * d / accel_dps2) if d <= ramp else v / accel_dps2 + (d - ramp) / v
+
+
+def pass_start(first_deg: float, direction: int, speed_dps: float, accel_dps2: float, window_deg: float,
+               rest_deg: float | None, limits: tuple[float, float]) -> float:
+    """Where a pass towards ``direction`` starts turning: where the turntable rests when that is
+    on the near side of the first mark (no move: accelerating from there passes any run-up start
+    already moving, and a frame taken slower is only sharper), else far enough before the mark
+    to be at speed at the first frame that may be kept (the ramp plus the match window)."""
+    if rest_deg is not None and direction * (first_deg - rest_deg) >= 0:
+        return rest_deg
+    back = speed_dps * speed_dps / (2 * accel_dps2) + window_deg
+    return min(limits[1], max(limits[0], first_deg - direction * back))
+
+
 @dataclass
 class PassReport:
     """What one continuous pass did."""
@@ -253,6 +299,9 @@ class PassReport:
     max_error_deg: float | None  # largest |angle - mark| of the kept frames
     duration_s: float
     stopped_early: bool = False
+    stream_start_s: float | None = None  # how long the camera's stream took to start
+    rest_deg: float | None = None  # the turntable's read-back once stopped (None after an error)
+    before_ready: int = 0  # frames exposed before the lamps were warm and the tilt settled: not kept
 
     def to_dict(self) -> dict:
         return {
@@ -260,6 +309,7 @@ class PassReport:
             "dropped": self.dropped, "missing_marks": [m for m, _ in self.missing],
             "measured_speed_dps": self.speed_dps, "max_error_deg": self.max_error_deg,
             "duration_s": self.duration_s, "stopped_early": self.stopped_early,
+            "stream_start_s": self.stream_start_s, "frames_before_ready": self.before_ready,
         }
 
 
@@ -277,14 +327,25 @@ def run_pass(
     on_frame: Callable[[Any], dict] | None = None,
     frame_timeout_s: float = 2.0,
     poll_interval_s: float = 0.05,
+    start_deg: float | None = None,
+    rest_deg: float | None = None,
+    ready_at: float = -math.inf,
+    stream_start_s: float | None = None,
+    on_done: Callable[[], object] | None = None,
 ) -> StepGen[PassReport]:
     """One continuous pass over ``marks`` (commanded turntable angles, in any order): a step.
 
-    Moves the turntable (verified) to the first mark minus the run-up, starts the
-    stream and the rotation (``rotation``: the turntable's, as the rig recorded it),
-    matches frames to marks and yields what ``on_match`` makes of each; before every frame
-    it yields a :class:`~m2s2hil.engine.messages.Checkpoint` and stops early when the reply
-    says so. Rotation and stream are always stopped before it returns, raises or is closed.
+    The turntable starts at ``start_deg`` (default: :func:`pass_start` with no known rest),
+    moved there and verified unless ``rest_deg``, its read-back at rest, says it stands there.
+    No frame exposed before ``ready_at`` (lamps warm, tilt settled) is kept. With a long enough
+    run-up and a known ``stream_start_s`` the rotation starts first, timed so that the first
+    frame that may be kept begins no sooner than ``ready_at``, and the camera's stream starts
+    during the run-up; otherwise the stream starts first, no sooner than lets its first frame
+    begin at ``ready_at``. Frames are matched to marks and ``on_match`` yields what it makes of
+    each; before every frame it yields a :class:`~m2s2hil.engine.messages.Checkpoint` and stops
+    early when the reply says so. Once every mark has its frames, ``on_done`` runs before the
+    turntable brakes (the next pass's lamps switch and warm meanwhile). Rotation and stream are
+    always stopped before it returns, raises or is closed.
     """
     clock = rig.clock
     tt, cam = rig.turntable, rig.camera
@@ -295,24 +356,29 @@ def run_pass(
     if len(marks) > 1 and marks[0][0] > marks[-1][0]:
         direction = -1
     first, last = (angles[0], angles[-1]) if direction > 0 else (angles[-1], angles[0])
-    run_up = run_up_deg(speed_dps, ax.accel_dps2)
-    lo, hi = ax.min_deg, ax.max_deg
-    start = min(hi, max(lo, first - direction * run_up))
-    ops.move("turntable", start)
+    start = start_deg if start_deg is not None else pass_start(
+        first, direction, speed_dps, ax.accel_dps2, window_deg, None, (ax.min_deg, ax.max_deg))
+    if rest_deg is None or abs(rest_deg - start) > ax.tolerance_deg / 2:
+        ops.move("turntable", start)
     readout = 1.0 / model.max_fps
     fps = min(model.max_fps, 1.0 / max(exposure_s, 1e-6))
     matcher = MarkMatcher(marks, direction, k=k, window_deg=window_deg)
-    track, mapper = AngleTrack(window=64), TimestampMapper()
+    track, mapper = AngleTrack(window=64, accel_dps2=ax.accel_dps2), TimestampMapper()
     speeds = AngleTrack(window=3)  # the last ~0.1 s: the run-up is over by the first mark
+    # From rest at `start`, the first frame that may be kept (mid-exposure at the first mark less
+    # the window) begins `lead` s after the rotation starts, one whole exposure early to be safe.
+    lead = reach_s(direction * (first - start) - window_deg, speed_dps, ax.accel_dps2) - exposure_s
+    rotate_first = stream_start_s is not None and lead >= 1.25 * stream_start_s
     t0 = clock.monotonic()
-    frames_read = dropped = 0
+    frames_read = dropped = early = 0
     last_block: int | None = None
     errors: list[float] = []
     stopped = False
     end = last + direction * (window_deg + 1.0)
     travel = abs(end - start)
-    give_up = t0 + travel / max(speed_dps, 1e-6) + 2 * speed_dps / ax.accel_dps2 + 5.0
     last_poll = -math.inf
+    started_s: float | None = None
+    rest: float | None = None
 
     def poll() -> None:
         nonlocal last_poll
@@ -323,7 +389,34 @@ def run_pass(
         speeds.add((a + b) / 2, pos)
         last_poll = b
 
+    def sleep_until(t: float) -> None:
+        wait = t - clock.monotonic()
+        if wait > 0:
+            clock.sleep(wait)
+
+    def start_stream() -> None:
+        nonlocal started_s
+        a = clock.monotonic()
+        cam.start_stream(fps)
+        started_s = clock.monotonic() - a
+
     missing: list[tuple[float, Any]] = []
+    # While the speed changes (a run-up), frames wait for a read-back after their mid-exposure:
+    # the angle is interpolated, not extrapolated along a line the path bends away from.
+    waiting: collections.deque[tuple[float, Any, dict]] = collections.deque()
+    past_end = False
+
+    def resolve(final: bool = False) -> Iterator[StepMessage]:
+        nonlocal past_end
+        while waiting and (final or waiting[0][0] <= track.last_time() or track.steady()):
+            t_mid, frame, extra = waiting.popleft()
+            angle = track.angle_at(t_mid)
+            extra["angle_deg"] = angle
+            extra["angle_uncertainty_deg"] = track.uncertainty_at(t_mid)
+            yield from release(matcher.offer(angle, frame, extra))
+            if direction * (angle - end) > 0:
+                past_end = True
+                waiting.clear()
 
     def release(ms: list[Match]) -> Iterator[StepMessage]:
         for m in ms:
@@ -333,16 +426,29 @@ def run_pass(
             errors.append(abs(m.error_deg))
             yield from on_match(m)
 
-    cam.start_stream(fps)
     try:
-        rotation.rotate(speed_dps, direction=direction)
-        poll()
-        while not matcher.done():
+        if rotate_first:
+            assert stream_start_s is not None
+            sleep_until(ready_at - lead)
+            rotation.rotate(speed_dps, direction=direction)
+            poll()
+            start_stream()  # during the run-up: frames flow before the first one that may be kept
+        else:
+            # Every frame of the stream may be kept: its first exposure begins no sooner than
+            # ready_at (80 % of the least start-up seen, so a faster start only makes it later).
+            sleep_until(ready_at - (0.8 * stream_start_s if stream_start_s is not None else 0.0))
+            start_stream()
+            rotation.rotate(speed_dps, direction=direction)
+            poll()
+        turning = clock.monotonic()
+        give_up = turning + travel / max(speed_dps, 1e-6) + 2 * speed_dps / ax.accel_dps2 + 5.0
+        while not matcher.done() and not past_end:
             if (yield Checkpoint()):
                 stopped = True
                 break
             if clock.monotonic() - last_poll >= poll_interval_s:
                 poll()
+                yield from resolve()
             frame = cam.read_frame(timeout=frame_timeout_s)
             frames_read += 1
             if last_block is not None and frame.block_id > last_block + 1:
@@ -352,19 +458,25 @@ def run_pass(
             if len(track) < 2:
                 poll()
             t_mid = mapper.host_time(frame.timestamp_s) - readout - exposure_s / 2
-            angle = track.angle_at(t_mid)
-            extra = dict(on_frame(frame)) if on_frame else {}
-            try:
-                extra["speed_dps"] = abs(speeds.speed())
-            except ValueError:
-                extra["speed_dps"] = None
-            extra["angle_deg"] = angle
-            extra["angle_uncertainty_deg"] = track.uncertainty_at(t_mid)
-            yield from release(matcher.offer(angle, frame, extra))
-            if direction * (angle - end) > 0:
-                break
+            # The mapped time is never earlier than the real one (the latency's floor): a frame
+            # kept here did begin after ready_at. The timing above makes this a guard only.
+            if t_mid - exposure_s / 2 < ready_at:
+                early += 1
+            else:
+                extra = dict(on_frame(frame)) if on_frame else {}
+                try:
+                    extra["speed_dps"] = abs(speeds.speed())
+                except ValueError:
+                    extra["speed_dps"] = None
+                waiting.append((t_mid, frame, extra))
+                yield from resolve()
             if clock.monotonic() > give_up:
                 break
+        if not stopped and waiting:
+            poll()  # the frames still waiting for a read-back after them
+            yield from resolve(final=True)
+        if matcher.done() and not stopped and not missing and on_done is not None:
+            on_done()  # the last frame is read: the next pass's lamps may come on while it brakes
     finally:
         stop_errors = []
         for step in (tt.stop, cam.stop_stream):
@@ -373,6 +485,11 @@ def run_pass(
             except Exception as exc:  # both steps are tried; the first error is raised below
                 stop_errors.append(exc)
         ops.invalidate(lamps=False)
+        if not stop_errors:
+            try:  # where the next pass may start from, without a move
+                rest = float(tt.position())
+            except Exception:  # not known: the next pass moves and verifies
+                rest = None
     if stopped:
         matcher.drop_candidates()
     else:
@@ -389,5 +506,5 @@ def run_pass(
         marks=len(marks), matched=len(errors), frames_read=frames_read,
         dropped=dropped, missing=missing, speed_dps=measured,
         max_error_deg=max(errors) if errors else None, duration_s=clock.monotonic() - t0,
-        stopped_early=stopped,
+        stopped_early=stopped, stream_start_s=started_s, rest_deg=rest, before_ready=early,
     )

@@ -5,8 +5,9 @@ Stop-and-go (:func:`estimate`): a trapezoidal velocity profile per axis
 exposure + readout (1/max_fps) per frame, lamp warm-up per switch (only lamps that
 were off need to warm up), dark frames. The lower bound keeps only physics: both axes
 moving together, lamps warming while the stage moves, no settling. Continuous rotation
-(:func:`estimate_continuous`): one constant-ω sweep per pass, with its run-up and run-down;
-the tilt's settling and the lamps' warm-up overlap the turntable's repositioning and run-up.
+(:func:`estimate_continuous`): one constant-ω sweep per pass from rest where the last pass's
+turntable stopped (the snake turns back, no repositioning); the next lamps warm while it brakes,
+the tilt moves after it stops, and the run-up is timed to end as lamps and tilt are ready.
 """
 
 from __future__ import annotations
@@ -44,6 +45,14 @@ def move_time_s(distance_deg: float, axis: AxisConfig) -> float:
     if d <= 0:
         return 0.0
     return rest_to_rest_s(d, axis.max_speed_dps, axis.accel_dps2)
+
+
+def rest_to_speed_s(distance_deg: float, speed_dps: float, accel_dps2: float) -> float:
+    """Time from rest to cover ``distance_deg`` accelerating at ``accel_dps2`` up to ``speed_dps``
+    (the continuous run-up; the same profile as ``engine.marks.reach_s``)."""
+    d, v = max(0.0, distance_deg), abs(speed_dps)
+    ramp = v * v / (2 * accel_dps2)
+    return math.sqrt(2 * d / accel_dps2) if d <= ramp else v / accel_dps2 + (d - ramp) / v
 
 
 def switch_warmup_s(rig: RigConfig, previous: str | None, new: str) -> float:
@@ -159,7 +168,8 @@ class ContinuousEstimate(PlanModel):
 def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
                         max_blur_px: float | None = None,
                         events: Sequence[CaptureEvent] | None = None,
-                        speed_dps: float | None = None) -> ContinuousEstimate:
+                        speed_dps: float | None = None,
+                        start_pose_deg: float = 0.0) -> ContinuousEstimate:
     """ω per condition: as fast as the turntable allows, but one azimuth step must take at
     least ``frames_per_pose`` frame intervals (frame interval = max(1/max_fps, exposure))
     and, if given, the blur at ``radius_px`` must stay under ``max_blur_px``. ``speed_dps``
@@ -189,52 +199,68 @@ def estimate_continuous(sweep: Sweep, rig: RigConfig, *, radius_px: float,
     if events is None:
         events = sweep.expand(rig)
     lo, hi = turntable_range(rig)
-    b = dict(motion=0.0, sweep=0.0, settle=0.0, warmup=0.0, dark=0.0)
+    a = tt.accel_dps2
+    b = dict(motion=0.0, sweep=0.0, braking=0.0, settle=0.0, warmup=0.0, dark=0.0)
     lower = 0.0
-    pos_tt, pos_tl = 0.0, 0.0
-    light: str | None = None
-    within = True
-    frames = [e for e in events if e.kind == "frame"]
     for ev in events:
         if ev.kind == "dark":
             t = ev.n_frames * (ev.exposure_s + 1.0 / fps)
             b["dark"] += t
             lower += t
     passes: dict[int, list[CaptureEvent]] = {}
-    for ev in frames:
-        passes.setdefault(ev.pass_index, []).append(ev)
+    for ev in events:
+        if ev.kind == "frame":
+            passes.setdefault(ev.pass_index, []).append(ev)
+    # The engine (engine/continuous_steps, marks.run_pass), timed from the moment the last pass's
+    # last frame is read: the next lamps switch then and warm while the turntable brakes (ω/a);
+    # then the tilt moves and settles; the turntable turns back from where it came to rest when
+    # that lies before the first mark (else it repositions to ramp + match window before it); its
+    # rotation is timed so the first frame a mark may keep begins once lamps and tilt are ready.
+    rest_tt, pos_tl = start_pose_deg, 0.0
+    w_prev: float | None = None
+    light: str | None = None
+    within = True
     for p in sorted(passes):
         evs = passes[p]
         c = evs[0].lighting
         assert c is not None and evs[0].azimuth_deg is not None and evs[0].tilt_deg is not None
-        w, r = omega[c], runup[c]
+        w, fi = omega[c], interval[c]
         a0, a1 = evs[0].azimuth_deg, evs[-1].azimuth_deg
         direction = 1.0 if a1 >= a0 else -1.0
-        start, end = a0 - direction * r, a1 + direction * r
-        if min(start, end) < lo - 1e-9 or max(start, end) > hi + 1e-9:
-            within = False
-        t_tt = move_time_s(start - pos_tt, tt)
-        t_tl = move_time_s(evs[0].tilt_deg - pos_tl, tl)
+        window = min(step / 2, max(0.1, 1.5 * w * fi))  # SpeedSettings.match_window's default
+        brake = w_prev / a if w_prev is not None else 0.0
         warm = switch_warmup_s(rig, light, c) if c != light else 0.0
         light = c
-        # Only the tilt's ringing matters: the turntable starts its run-up from where it stopped.
+        t_tl = move_time_s(evs[0].tilt_deg - pos_tl, tl)
         settle = _settle(evs[0], rig, ["tilt"] if t_tl > 0 else [])
-        # Run-up and run-down at acceleration a take ω/a together; the span at ω.
-        span = abs(a1 - a0)
-        t_sweep = span / w + w / tt.accel_dps2 + (sweep.frames_per_pose - 1) * interval[c]
-        # The engine (continuous_steps): lamps switched, tilt moved, then the turntable to the
-        # run-up's start (after the tilt: one GRBL planner runs blocks in sequence), while the
-        # tilt settles and the lamps warm; the rotation starts its run-up (ω/a) that much early.
-        base, ramp = t_tl + t_tt, w / tt.accel_dps2
-        waits = {"settle": t_tl + settle - ramp - base, "warmup": warm - ramp - base}
-        longest = max(waits, key=lambda k: waits[k])
-        b["motion"] += base
-        b[longest] += max(0.0, waits[longest])
-        b["sweep"] += t_sweep
-        # The floor of this order: the first mark is crossed at ω no sooner than the turntable
-        # has repositioned and run up (ω/a from rest), the tilt has arrived and the lamps are warm.
-        lower += max(t_tt + ramp, t_tl, warm) + span / w + (sweep.frames_per_pose - 1) * interval[c]
-        pos_tt, pos_tl = end, evs[0].tilt_deg
+        dist = direction * (a0 - rest_tt)
+        t_tt = 0.0
+        if dist < 0:  # rest beyond the first mark: reposition to the run-up's start
+            dist = runup[c] + window
+            t_tt = move_time_s(a0 - direction * dist - rest_tt, tt)
+        if min(a0 - direction * dist, a0) < lo - 1e-9 or max(a0 - direction * dist, a0) > hi + 1e-9:
+            within = False
+        ready = max(brake + t_tl + settle, warm)  # tilt settled, lamps warm
+        now = brake + t_tl + t_tt  # the turntable may start turning
+        # The rotation starts ``lead`` before the first keepable frame (the first pass streams
+        # first, so the rotation starts once ready).
+        lead = max(0.0, rest_to_speed_s(dist - window, w, a) - sweep.exposure_for(c)) if p else 0.0
+        rot = max(now, ready - lead)
+        wait = rot - now
+        b["braking"] += brake
+        b["motion"] += t_tl + t_tt
+        b["settle" if brake + t_tl + settle >= warm else "warmup"] += wait
+        # run-up, the span, the k-1 further frames of the last mark, and the frame past it whose
+        # read-out completes the mark (the overrun)
+        overrun = 2 * fi + 1.0 / fps
+        b["sweep"] += rest_to_speed_s(dist + abs(a1 - a0), w, a) + (sweep.frames_per_pose - 1) * fi + overrun
+        lower += max(t_tl, warm, brake + rest_to_speed_s(dist, w, a)) + abs(a1 - a0) / w \
+            + (sweep.frames_per_pose - 1) * fi
+        rest_tt = a1 + direction * (w * overrun + runup[c])
+        if rest_tt < lo - 1e-9 or rest_tt > hi + 1e-9:
+            within = False
+        pos_tl, w_prev = evs[0].tilt_deg, w
+    b["braking"] += (w_prev / a) if w_prev is not None else 0.0  # the last stop: the rig left safe
     total = sum(b.values())
     return ContinuousEstimate(
         omega_dps=omega, frame_interval_s=interval, blur_deg=blur_deg, blur_px=blur_px, runup_deg=runup,

@@ -3,7 +3,9 @@ conditions and tilts, the duration model finds cheapest.
 
 With ``axis_order="auto"`` every nesting of the three loops (light, tilt, azimuth) and the
 order of lighting conditions and tilts are scored with :func:`~m2s2hil.plan.estimate.estimate`
-and the cheapest wins (ties go to the earlier candidate, so the choice is deterministic).
+(continuous sweeps: :func:`~m2s2hil.plan.estimate.estimate_continuous`, whose cost is the waits
+a continuous run cannot hide: lamp warm-ups longer than a turn, turn-backs, tilt moves) and the
+cheapest wins (ties go to the earlier candidate, so the choice is deterministic).
 Inner loops run as a snake (boustrophedon): each pass runs the opposite way of the one
 before, so the turntable goes 0→350 then 350→0 and never winds its cables past
 ``cable_wrap_limit_deg``. Dark frames come first (lens cap on).
@@ -18,7 +20,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from m2s2hil.config import RigConfig
-from m2s2hil.plan.estimate import estimate, turntable_range
+from m2s2hil.plan.estimate import estimate, estimate_continuous, turntable_range
 from m2s2hil.plan.floor import PhysicalFloor, physical_floor
 from m2s2hil.plan.model import (
     AXES,
@@ -217,7 +219,10 @@ def _candidates(sweep: Sweep, rig: RigConfig, *, every: bool = False) -> Iterato
 def _search_plan(sweep: Sweep, rig: RigConfig) -> tuple[list[CaptureEvent], str]:
     best: tuple[float, list[_Step], str] | None = None
     for order, steps in _candidates(sweep, rig):
-        cost = estimate(steps, rig).total_s  # type: ignore[arg-type]
+        if sweep.mode == "continuous":  # the waits a continuous run cannot hide (warm-ups, turns, tilt)
+            cost = estimate_continuous(sweep, rig, radius_px=400.0, events=steps).total_s  # type: ignore[arg-type]
+        else:
+            cost = estimate(steps, rig).total_s  # type: ignore[arg-type]
         if best is None or cost < best[0] - 1e-9:
             best = (cost, steps, order)
     assert best is not None
