@@ -15,7 +15,10 @@ Figures: median over all frames and the best round's median; the machine is shar
 average is printed and the ratio against the same run's floor is the figure to compare. The last
 column pairs every frame with a 168 MB fill timed just before it (floor and step see the same
 load) and gives the median of those per-frame ratios: the figure the targets refer to. "× floor,
-CPU" is the same with process CPU time (all threads) instead of wall time.
+CPU" is the same with process CPU time (all threads) instead of wall time; "frames/s of CPU" is
+the rate the step would reach with both cores to itself. The unpaired "× floor" (the floor timed
+once, the step later) mixes two moments of a shared machine's load: under load 5–8 it read 3–5×
+for a step whose paired and CPU ratios were 1.3×, and it is not the figure the targets refer to.
 """
 
 from __future__ import annotations
@@ -37,9 +40,10 @@ def timed(fn, frames: int, rounds: int) -> tuple[float, float]:
     return t.ms_median, t.ms_best
 
 
-def paired(fn, fill, frames: int, rounds: int) -> tuple[float, float, list[float], list[float], float]:
+def paired(fn, fill, frames: int, rounds: int) -> tuple[float, float, list[float], list[float], float, float]:
     """``fn`` and the floor's ``fill`` in turn, frame by frame: (median ms, best round median ms,
-    every ``fn`` time, every ``fill`` time in s, ``fn``'s CPU seconds over ``fill``'s). On a shared
+    every ``fn`` time, every ``fill`` time in s, ``fn``'s CPU seconds over ``fill``'s, ``fn``'s mean
+    CPU ms a frame). On a shared
     machine the load moves within seconds, so a floor timed before the step says little about the
     step's own seconds; pairs do. The CPU ratio leaves out the time either spent descheduled."""
     fn()
@@ -61,7 +65,8 @@ def paired(fn, fill, frames: int, rounds: int) -> tuple[float, float, list[float
             fills.append(t1 - t0)
         medians.append(float(np.median(ts)) * 1e3)
         every.extend(ts)
-    return float(np.median(every)) * 1e3, min(medians), every, fills, cpu_fn / max(cpu_fill, 1e-9)
+    cpu_ms = cpu_fn / (rounds * frames) * 1e3
+    return float(np.median(every)) * 1e3, min(medians), every, fills, cpu_fn / max(cpu_fill, 1e-9), cpu_ms
 
 
 def fill_bandwidth(frames: int, rounds: int) -> float:
@@ -134,23 +139,23 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(
         "| step | median ms | best round ms | frames/s (median) | floor ms | × floor "
-        "| × floor, paired | × floor, CPU |"
+        "| × floor, paired | × floor, CPU | CPU ms | frames/s of CPU |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     with Busy(args.busy):
         bw = fill_bandwidth(args.frames, args.rounds)
         in_bytes = raw.nbytes + dark.data.nbytes
         cube = np.zeros((10, 2048, 2048), np.float32)
 
         def row(name: str, fn, out_bytes: int) -> None:
-            med, best, ts, fills, cpu = paired(fn, lambda: cube.fill(1.0), args.frames, args.rounds)
+            med, best, ts, fills, cpu, cpu_ms = paired(fn, lambda: cube.fill(1.0), args.frames, args.rounds)
             need = in_bytes + out_bytes
             floor = need / bw / 1e6
             # each frame against the fill timed just before it: t / (bytes / that fill's bandwidth)
             pair = float(np.median([t * cube.nbytes / (f * need) for t, f in zip(ts, fills, strict=True)]))
             print(
                 f"| {name} | {med:.2f} | {best:.2f} | {1e3 / med:.0f} | {floor:.2f} | {med / floor:.2f} "
-                f"| {pair:.2f} | {cpu * cube.nbytes / need:.2f} |"
+                f"| {pair:.2f} | {cpu * cube.nbytes / need:.2f} | {cpu_ms:.2f} | {1e3 / cpu_ms:.0f} |"
             )
 
         if "superpixel" in procs:

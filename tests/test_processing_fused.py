@@ -17,6 +17,7 @@ from m2s2hil.processing.stability import (
     low_light_warning,
     phase_warning,
     saturation_warning,
+    sublattice_stats,
 )
 from m2s2hil.processing.superpixel import SuperPixelDemosaicer
 
@@ -123,6 +124,39 @@ def test_low_light_percentile_from_histogram_is_exact(seed):
     mosaic = rng.integers(0, 12 + 40 * seed, (48, 64), dtype=np.uint16)
     got = low_light_warning(mosaic, 100.0, LAYOUT.n)
     assert got is not None and got == low_light_warning(mosaic.astype(np.float32), 100.0, LAYOUT.n)
+
+
+@pytest.mark.parametrize(
+    ("n", "shape", "row_step", "step"), [(4, (48, 64), 1, 8), (3, (27, 33), 2, 3), (5, (50, 35), 3, 1)]
+)
+def test_low_light_percentile_sampling_matches_partition(n, shape, row_step, step):
+    """The compiled histogram samples the same cells as the strided view (any n, steps, ragged ends)."""
+    mosaic = np.random.default_rng(n).integers(0, 900, shape, dtype=np.uint16)
+    got = low_light_warning(mosaic, 1000.0, n, step, row_step=row_step)
+    assert got is not None and got == low_light_warning(
+        mosaic.astype(np.float32), 1000.0, n, step, row_step=row_step
+    )
+
+
+@pytest.mark.parametrize(("n", "shape", "step"), [(4, (48, 64), 8), (4, (256, 128), 1), (3, (27, 33), 2)])
+def test_sublattice_stats_integer_sums_are_exact(n, shape, step):
+    """uint16 mosaics are summed in int64: equal to float64 sums of the same values, also above
+    4096 where the float32 squares of the generic route round."""
+    mosaic = np.random.default_rng(step).integers(0, 65536, shape, dtype=np.uint16)
+    mean, se = sublattice_stats(mosaic, n, step)
+    rows = mosaic.reshape(shape[0] // n, n, shape[1]).astype(np.float64)[::step]
+    count = rows.shape[0] * (shape[1] // n)
+    s1 = rows.sum(axis=0).reshape(n, -1, n).sum(axis=1)
+    s2 = (rows * rows).sum(axis=0).reshape(n, -1, n).sum(axis=1)
+    assert np.array_equal(mean, s1 / count)
+    assert np.array_equal(se, np.sqrt(np.maximum(s2 / count - (s1 / count) ** 2, 0.0) / count))
+    small = (mosaic >> 6).astype(np.uint16)  # 10-bit values: the float route is exact too
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(
+            sublattice_stats(small, n, step), sublattice_stats(small.astype(np.float32), n, step), strict=True
+        )
+    )
 
 
 @pytest.mark.parametrize(

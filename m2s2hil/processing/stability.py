@@ -42,14 +42,21 @@ class PhaseCheck:
 
 def sublattice_stats(mosaic: np.ndarray, n: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(n, n) mean of each MSFA position over every ``step``-th row of cells (all columns), and the
-    standard error of those means (samples taken as independent)."""
+    standard error of those means (samples taken as independent). uint16 mosaics are summed in
+    int64 (exact); other dtypes square in float32, exact up to 4096."""
     h, w = mosaic.shape
-    rows = mosaic.reshape(h // n, n, w)[::step]  # whole rows: the sums below run on contiguous memory
-    count = rows.shape[0] * (w // n)
-    s1 = rows.sum(axis=0, dtype=np.float64).reshape(n, w // n, n).sum(axis=1)
-    sq = rows.astype(np.float32)
-    np.multiply(sq, sq, out=sq)
-    s2 = sq.sum(axis=0, dtype=np.float64).reshape(n, w // n, n).sum(axis=1)
+    count = -(-(h // n) // step) * (w // n)
+    if mosaic.dtype == np.uint16 and mosaic.flags.c_contiguous:
+        from m2s2hil.processing import kernels  # here: importing this module need not load numba
+
+        # exact integer sums in one compiled pass (1.1 → 0.26 ms on the QC rows of a frame)
+        s1, s2 = kernels.position_sums_u16(mosaic, n, step)
+    else:
+        rows = mosaic.reshape(h // n, n, w)[::step]  # whole rows: the sums run on contiguous memory
+        s1 = rows.sum(axis=0, dtype=np.float64).reshape(n, w // n, n).sum(axis=1)
+        sq = rows.astype(np.float32)
+        np.multiply(sq, sq, out=sq)
+        s2 = sq.sum(axis=0, dtype=np.float64).reshape(n, w // n, n).sum(axis=1)
     mean = s1 / count
     var = np.maximum(s2 / count - mean**2, 0.0)
     return mean, np.sqrt(var / count)
@@ -164,12 +171,14 @@ def low_light_warning(
         return None
     h, w = mosaic.shape
     rs = step if row_step is None else row_step
-    sample = mosaic.reshape(h // n, n, w // n, n)[::rs, :, ::step, :].ravel()
+    sample = mosaic.reshape(h // n, n, w // n, n)[::rs, :, ::step, :]
     k = int(0.95 * (sample.size - 1))
-    if sample.dtype == np.uint16:  # the k-th smallest from a histogram: exact, 3× faster than partition
-        signal = float(np.searchsorted(np.cumsum(np.bincount(sample)), k, side="right"))
+    if mosaic.dtype == np.uint16:  # the k-th smallest from a histogram, read in place: exact
+        from m2s2hil.processing import kernels
+
+        signal = float(kernels.kth_smallest_cells_u16(mosaic, n, rs, step, k))
     else:
-        signal = float(np.partition(sample, k)[k])
+        signal = float(np.partition(sample.ravel(), k)[k])
     snr = signal / read_noise_dn
     if snr >= LOW_SNR:
         return None
