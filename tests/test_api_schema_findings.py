@@ -20,6 +20,9 @@ def test_an_export_the_sessions_state_does_not_allow_is_a_conflict(tmp_path) -> 
         assert again.status_code == 409 and "already exists" in again.json()["detail"], again.text
         assert d.client.post(f"/sessions/{queued}/export",
                              json={"layout": "m2s2", "overwrite": True}).status_code == 201
+        for loose in ("yes", 1, "true"):  # a flag that destroys an export takes a JSON boolean only
+            r = d.client.post(f"/sessions/{queued}/export", json={"layout": "m2s2", "overwrite": loose})
+            assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "overwrite"], r.text
 
 
 def test_darks_need_at_least_one_exposure_and_the_schema_says_so(tmp_path) -> None:

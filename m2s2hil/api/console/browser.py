@@ -28,7 +28,7 @@ REPORT_HEADERS = {
 
 
 class ExportIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     layout: Literal["m2s2", "hf", "zarr"] = "m2s2"
     overwrite: bool = False
 
