@@ -148,9 +148,10 @@ def uvicorn_thread(app: Any) -> Iterator[str]:
 
 
 def quick_rig_file(tmp: Path) -> Path:
-    """The built-in rig with a small sensor and a quicker turntable (a realtime session of ~5 s)."""
+    """The built-in rig with a 64² sensor (the pixels are not these tests' point) and a quicker
+    turntable (a realtime session of ~5 s)."""
     text = resources.files("m2s2hil").joinpath("data/default_rig.toml").read_text()
-    for old, new in (("width = 2048", "width = 256"), ("height = 2048", "height = 256"),
+    for old, new in (("width = 2048", "width = 64"), ("height = 2048", "height = 64"),
                      ("max_speed_dps = 60.0", "max_speed_dps = 180.0"),
                      ("accel_dps2 = 120.0", "accel_dps2 = 720.0")):
         assert old in text

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 
 import m2s2hil.simulators  # noqa: F401  (registers sim:// with pyserial)
@@ -9,6 +10,14 @@ import pytest
 from m2s2hil.simulators.clock import VirtualClock
 from numba_cache import use_private_numba_cache
 from shared_sessions import SharedSessions
+
+# The machine's PYTHONDONTWRITEBYTECODE (the daemon image's setting) would have every worker
+# assertion-rewrite the test modules anew at each run (8 s of its collection) and every daemon
+# or CLI process a test starts compile our modules from source. Bytecode goes to __pycache__.
+sys.dont_write_bytecode = False
+
+# the browser tests' one Chromium per process, and its event loop kept out of the other tests' way
+pytest_plugins = ["browser_support"]
 
 
 def _is_xdist_controller(config: pytest.Config) -> bool:

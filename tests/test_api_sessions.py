@@ -8,7 +8,7 @@ import io
 
 import numpy as np
 import pytest
-from api_support import daemon, long_sweep, sweep
+from api_support import daemon, long_sweep, small_rig_config, sweep
 from PIL import Image
 
 from m2s2hil.store.frame_files import decode_tiff
@@ -157,11 +157,12 @@ def test_pause_resume_abort_a_running_session(d) -> None:
 @pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_resume_an_interrupted_session_from_disk(tmp_path) -> None:
     root = tmp_path / "data"
-    with daemon(root) as d:
+    rig = small_rig_config(64)  # the capture QC of 108 frames is most of the CPU at 256² (22 s against 7 s)
+    with daemon(root, rig_config=rig) as d:
         sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
         d.wait(sid, lambda s: s["done"] >= 3)
         d.manager.close(timeout=30)  # as on SIGTERM: parks the session and marks it interrupted
-    with daemon(root) as d:  # a new daemon without automatic resumption
+    with daemon(root, rig_config=rig) as d:  # a new daemon without automatic resumption
         st = d.client.get(f"/sessions/{sid}").json()
         assert st["state"] == "interrupted" and st["resumable"] and not st["live"]
         before = st["done"]
@@ -219,7 +220,7 @@ def test_frames_of_unknown_things(d) -> None:
 
 def test_sessions_beyond_the_kept_ones_have_their_journals_closed(tmp_path) -> None:
     # The soak found journals left open past keep_finished (4 descriptors each, until the GC).
-    with daemon(tmp_path / "data", keep_finished=1) as dm:
+    with daemon(tmp_path / "data", keep_finished=1, rig_config=small_rig_config(64)) as dm:
         sids = [dm.client.post("/sessions", json=sweep()).json()["session_id"] for _ in range(3)]
         jobs = [dm.manager._queue.get(sid) for sid in sids]
         assert all(j is not None for j in jobs)

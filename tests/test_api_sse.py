@@ -8,7 +8,7 @@ import time
 
 import httpx
 import pytest
-from api_support import daemon, long_sweep, parse_sse, sweep, uvicorn_thread
+from api_support import daemon, long_sweep, parse_sse, small_rig_config, sweep, uvicorn_thread
 
 from m2s2hil.api.sse import Cursor, parse_last_event_id
 
@@ -50,7 +50,8 @@ def test_events_of_a_session_in_order(tmp_path) -> None:
 @pytest.mark.slow  # a real socket, a long session: ~22 s
 @pytest.mark.timeout(600)  # generous: a loaded machine stretches it, it does not fail it
 def test_live_stream_over_a_socket_resumes_without_loss_or_duplicates(tmp_path) -> None:
-    with daemon(tmp_path / "data") as d:
+    # 64²: the capture QC of 108 frames is most of the test's CPU at 256² (22 s against 7 s)
+    with daemon(tmp_path / "data", rig_config=small_rig_config(64)) as d:
         d.manager.hold("test")
         sid = d.client.post("/sessions", json=long_sweep()).json()["session_id"]
         with uvicorn_thread(d.client.app) as base, httpx.Client(base_url=base, timeout=30) as http:

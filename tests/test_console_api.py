@@ -19,20 +19,25 @@ from m2s2hil.drivers.interfaces import Frame
 from m2s2hil.processing.calibration import load_calibration
 from m2s2hil.rig.live_view import HIST_BINS, LiveFrame, LiveNotice, LiveSettings, LiveStream
 
+SENSOR = 64  # px a side: a frame costs a quarter of the CPU it does at 256² (the endpoints do not care)
+
 
 @pytest.fixture
 def d(tmp_path: Path):
-    with daemon(tmp_path / "data") as dd:
+    with daemon(tmp_path / "data", rig_config=small_rig_config(SENSOR)) as dd:
         yield dd
 
 
 def wait_idle(d, axis: str, timeout: float = 30.0) -> dict:
+    """The axis once it stands; simulated time goes on meanwhile (the rig's virtual clock moves only
+    when someone sleeps on it: a move would crawl at the pace of these polls)."""
     deadline = time.monotonic() + timeout
     while True:
         axes = {a["role"]: a for a in d.client.get("/rig/axes").json()["axes"]}
         if not axes[axis]["moving"]:
             return axes[axis]
         assert time.monotonic() < deadline, "the axis never stopped"
+        d.rig.clock.advance(0.05)
         time.sleep(0.01)
 
 
@@ -269,7 +274,8 @@ def test_live_stream_recovers_from_a_stalled_camera_stream(tmp_path: Path) -> No
     """The camera's stream stalls after its first frame (it stays stalled until acquisition is
     restarted): the viewer is told the error, the next grab restarts the stream, and the frames
     asked for arrive (before, every grab timed out again and the request never ended)."""
-    with daemon(tmp_path / "data", faults={"toucan": [{"kind": "stall", "count": 1, "after": 1}]}) as dd:
+    with daemon(tmp_path / "data", rig_config=small_rig_config(SENSOR),
+                faults={"toucan": [{"kind": "stall", "count": 1, "after": 1}]}) as dd:
         r = dd.client.get("/camera/live.mjpeg", params={"max_frames": 3})
         parts = mjpeg_parts(r.content)
         notices = [json.loads(f["X-Live-Status"]) for f, _ in parts if "X-Live-Status" in f]

@@ -3,8 +3,8 @@ on the simulated rig: the live view updates, a jog moves the simulated stage, a 
 from the form completes and shows up in the browser view, the emergency stop stops a session, a
 white-reference capture writes the calibration file, and a token-guarded daemon asks for the token.
 
-Screenshots of every view go to the test's temporary folder; with ``M2S2HIL_SCREENSHOTS=DIR`` they
-are written to DIR (``docs/images`` for the documentation)."""
+Screenshots of every view are taken when asked for, with ``M2S2HIL_SCREENSHOTS=DIR`` (``docs/images``
+for the documentation): each costs the browser about 0.4 s of CPU, more than most steps here."""
 
 from __future__ import annotations
 
@@ -18,17 +18,18 @@ from typing import Any
 import httpx
 import pytest
 from api_support import TOKEN, daemon, uvicorn_thread
-from browser_support import browser, start_session_from_form
+from browser_support import own_page, start_session_from_form
 
 from m2s2hil.api import create_app
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]  # a browser and a daemon
 
 
-def shots_dir(tmp_path: Path) -> Path:
-    out = Path(os.environ.get("M2S2HIL_SCREENSHOTS") or tmp_path / "shots")
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+def shot(page: Any, name: str) -> None:
+    """``page`` to ``$M2S2HIL_SCREENSHOTS/name`` when that is set."""
+    if out := os.environ.get("M2S2HIL_SCREENSHOTS"):
+        Path(out).mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(Path(out) / name))
 
 
 def stage_deg(d, role: str) -> float:
@@ -36,31 +37,36 @@ def stage_deg(d, role: str) -> float:
     return float(dev["state"][f"{role}_deg"])
 
 
-def wait_for(pred, timeout: float = 60.0, what: str = "condition"):
+def wait_for(pred, timeout: float = 60.0, what: str = "condition", clock=None):
+    """``pred()`` once true; with the rig's virtual ``clock``, simulated time goes on meanwhile
+    (it moves only when someone sleeps on it: a move would otherwise crawl at the pace of the
+    console's and this loop's polls, seconds for a degree)."""
     deadline = time.monotonic() + timeout
     while True:
         v = pred()
         if v:
             return v
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.2)  # (each look is a GET through the daemon: CPU)
+        if clock is not None:
+            clock.advance(0.1)
+        time.sleep(0.2 if clock is None else 0.05)  # (each look is a GET through the daemon: CPU)
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, str, Any]]:
-    """(daemon, base URL, playwright browser), one of each for the module's tests (a daemon and a
-    browser cost seconds of CPU each)."""
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Any, str]]:
+    """(daemon, base URL): one daemon on the simulated rig, served over HTTP, for the module's
+    tests (the browser is the process's: browser_support)."""
     root = tmp_path_factory.mktemp("console")
-    with daemon(root / "data") as d, uvicorn_thread(create_app(d.manager)) as base, browser() as b:
-        yield d, base, b
+    with daemon(root / "data") as d, uvicorn_thread(create_app(d.manager)) as base:
+        yield d, base
 
 
-def test_console_end_to_end(served, tmp_path: Path) -> None:
-    shots = shots_dir(tmp_path)
-    d, base, b = served
+def test_console_end_to_end(served, new_page) -> None:
+    d, base = served
+    clock = d.rig.clock
     # bypass_csp: playwright's wait_for_function evaluates strings, which the console's CSP
     # forbids (the token test below runs under the real policy)
-    page = b.new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
+    page = new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(base + "/")
@@ -89,11 +95,11 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     # jog: the simulated stage moves (read back through GET /rig)
     before = stage_deg(d, "turntable")
     page.click("[data-jog='turntable:10']")
-    wait_for(lambda: abs(stage_deg(d, "turntable") - (before + 10)) < 0.1, what="the jog")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (before + 10)) < 0.1, what="the jog", clock=clock)
     page.click("#presets button[data-preset='weak']")
     wait_for(lambda: len(d.rig.lights.state()) == 3, what="the weak preset")
     page.wait_for_function("document.querySelector('#presets button.on') !== null")
-    page.screenshot(path=str(shots / "console_setup.png"))
+    shot(page, "console_setup.png")
     page.click("#live-toggle")  # stop the live view
 
     # a session from the form: estimate, start, progress, contact sheet
@@ -110,7 +116,7 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     # the end is noticed: a toast (no notification permission here) and the tab's title
     page.wait_for_function(f"document.querySelector('#toasts')?.textContent.includes('{sid} completed')")
     assert page.title().startswith("✔ completed")
-    page.screenshot(path=str(shots / "console_sessions.png"))
+    shot(page, "console_sessions.png")
     # the fault count opens the log (the daemon's activity: this session's start at least); Esc
     # closes it and does not stop the rig
     page.click("#run-faults-open")
@@ -118,7 +124,7 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
                            "document.querySelectorAll('#log-list li').length > 0")
     page.uncheck("#log-session-only")  # everything: the operator actions too
     page.wait_for_function("document.getElementById('log-list').textContent.includes('POST /sessions')")
-    page.screenshot(path=str(shots / "console_log.png"))
+    shot(page, "console_log.png")
     page.keyboard.press("Escape")
     page.wait_for_function("!document.getElementById('log-dialog').open")
     assert d.client.get("/queue").json()["held"] is None
@@ -138,7 +144,7 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     with page.expect_download() as dl:
         page.click("#b-result button")
     assert dl.value.suggested_filename == f"{sid}-m2s2.zip"
-    page.screenshot(path=str(shots / "console_browser.png"))
+    shot(page, "console_browser.png")
 
     # emergency stop from the keyboard during a session
     start_session_from_form(page, tilts=("E0", "E1", "E2"), step_deg=10)
@@ -150,7 +156,7 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     assert st["state"] == "estopped" and st["done"] < st["total"]
     assert d.rig.lights.state() == frozenset()
     page.wait_for_function("document.getElementById('rig-status').textContent.startsWith('held')")
-    page.screenshot(path=str(shots / "console_estop.png"))
+    shot(page, "console_estop.png")
     page.click("#queue-release")
     page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")
 
@@ -167,18 +173,18 @@ def test_console_end_to_end(served, tmp_path: Path) -> None:
     assert cal["exists"] and cal["white_reference"]["provenance"]["lighting"] == "strong"
     page.click("#phase-form button[type=submit]")
     page.wait_for_function("document.getElementById('p-result').textContent.length > 0")
-    page.screenshot(path=str(shots / "console_calibration.png"))
+    shot(page, "console_calibration.png")
     page.close()  # (its polling would cost the next tests CPU)
     assert not errors, errors
 
 
-def test_console_asks_for_the_token_and_uses_it(served, tmp_path: Path) -> None:
-    b = served[2]  # the module's browser (one playwright at a time), a daemon of its own
-    with daemon(tmp_path / "data", token=TOKEN) as d, \
-            uvicorn_thread(create_app(d.manager, token=TOKEN)) as base:
+def test_console_asks_for_the_token_and_uses_it(served, new_page) -> None:
+    d = served[0]  # the module's rig and manager, behind an app of its own that wants the token
+    with uvicorn_thread(create_app(d.manager, token=TOKEN)) as base:
         from playwright.sync_api import expect
 
-        page = b.new_page()
+        assert httpx.get(base + "/rig", headers={"X-M2S2HIL": "1"}).status_code == 401  # it is guarded
+        page = new_page()
         page.goto(base + "/")
         expect(page.locator("#login")).to_be_visible()
         page.fill("#token", "wrong")
@@ -190,7 +196,9 @@ def test_console_asks_for_the_token_and_uses_it(served, tmp_path: Path) -> None:
         expect(page.locator("#login")).to_be_hidden()
         before = stage_deg(d, "tilt")
         page.click("[data-jog='tilt:1']")
-        wait_for(lambda: abs(stage_deg(d, "tilt") - (before + 1)) < 0.1, what="the jog with a token")
+        wait_for(lambda: abs(stage_deg(d, "tilt") - (before + 1)) < 0.1, what="the jog with a token",
+                 clock=d.rig.clock)
+        page.close()
 
 
 # ------------------------------------------------------------------ any screen, keys, names, themes
@@ -214,20 +222,19 @@ MEASURE_JS = """() => { window.scrollTo(0, document.documentElement.scrollHeight
 
 
 @pytest.fixture(scope="module")
-def console(served) -> Iterator[tuple[Any, Any, list[str]]]:
+def console(served, chromium) -> Iterator[tuple[Any, Any, list[str]]]:
     """(daemon, page, errors): one page for the layout tests, under the page's real CSP (a page costs
     CPU: the console polls); the list collects page errors and CSP violations. Desktop size."""
     from playwright.sync_api import expect
 
-    d, base, b = served
-    page = b.new_page(viewport=dict(zip(("width", "height"), SIZES["desktop"], strict=True)))
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.on("console", lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None)
-    page.goto(base + "/")
-    expect(page.locator("#rig-status")).to_contain_text("idle")
-    yield d, page, errors
-    page.close()
+    d, base = served
+    with own_page(chromium, viewport=dict(zip(("width", "height"), SIZES["desktop"], strict=True))) as page:
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.on("console", lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None)
+        page.goto(base + "/")
+        expect(page.locator("#rig-status")).to_contain_text("idle")
+        yield d, page, errors
     assert not errors, errors
 
 
@@ -352,25 +359,28 @@ def test_keyboard_jog_with_the_step_picker(console) -> None:
     expect(page.locator("#jog-steps button[data-step='10']")).to_have_attribute("aria-pressed", "false")
     page.keyboard.press("ArrowRight")
     page.keyboard.press("]")
-    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 2)) < 0.05, what="two 1° turntable jogs")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 2)) < 0.05, what="two 1° turntable jogs",
+             clock=d.rig.clock)
     page.click("#jog-steps button[data-step='0.1']")  # the picker's buttons; the keys still jog
     page.keyboard.press("ArrowUp")
-    wait_for(lambda: abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02, what="a 0.1° tilt jog")
+    wait_for(lambda: abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02, what="a 0.1° tilt jog",
+             clock=d.rig.clock)
     # in a number field ↑ is the field's: no jog
     page.focus("[data-goto='tilt']")
     page.keyboard.press("ArrowUp")
     page.click("#jog-steps button[data-step='1']")
     page.keyboard.press("ArrowLeft")
-    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 1)) < 0.05, what="a 1° turntable jog back")
+    wait_for(lambda: abs(stage_deg(d, "turntable") - (turn + 1)) < 0.05, what="a 1° turntable jog back",
+             clock=d.rig.clock)
     assert abs(stage_deg(d, "tilt") - (tilt + 0.1)) < 0.02
 
 
-def test_light_and_dark_follow_the_system_and_the_report_matches(console) -> None:
+def test_light_and_dark_follow_the_system_and_the_report_matches(console, new_page) -> None:
     from m2s2hil.analysis.report.session_html import CSS
 
     _, page, _ = console
     colours = "() => [getComputedStyle(document.body).backgroundColor, getComputedStyle(document.body).color]"
-    report = page.context.browser.new_page()
+    report = new_page()
     report.set_content(f"<!doctype html><html><head><style>{CSS}</style></head><body>report</body></html>")
     seen = {}
     for scheme in ("light", "dark"):

@@ -7,9 +7,9 @@ from __future__ import annotations
 import json
 import time
 
-import pytest
 from api_support import daemon
 from fastapi.testclient import TestClient
+from m2s2hil.simulators.clock import VirtualClock
 from rig_files import write_rig
 
 from m2s2hil.api import create_app
@@ -20,13 +20,17 @@ from m2s2hil.rig.origin import set_origin, state_path
 from m2s2hil.rig.pty_serve import SimServer
 
 
-def _idle(client: TestClient, role: str) -> dict:
+def _idle(client: TestClient, role: str, clock: VirtualClock | None = None) -> dict:
+    """The axis once it stands. On a virtual ``clock`` simulated time goes on meanwhile: it moves
+    only when someone sleeps on it, so a move would crawl at the pace of these polls."""
     deadline = time.monotonic() + 20
     while True:
         ax = {a["role"]: a for a in client.get("/rig/axes").json()["axes"]}[role]
         if not ax["moving"]:
             return ax
         assert time.monotonic() < deadline
+        if clock is not None:
+            clock.advance(0.05)
         time.sleep(0.02)
 
 
@@ -65,7 +69,6 @@ def test_origin_from_the_console_on_a_factory_grbl(tmp_path) -> None:
             rig.close()
 
 
-@pytest.mark.slow  # homing in real time: ~3 s
 def test_builtin_rig_homes_and_refuses_an_origin(tmp_path) -> None:
     with daemon(tmp_path / "data") as d:
         axes = d.client.get("/rig/axes").json()["axes"]
@@ -76,7 +79,7 @@ def test_builtin_rig_homes_and_refuses_an_origin(tmp_path) -> None:
         if d.client.get("/rig/axes").json()["axes"][1]["moving"]:
             r = d.client.post("/rig/axes/tilt/home")
             assert r.status_code == 422 and "moving" in r.json()["detail"]
-        assert _idle(d.client, "tilt")["position_deg"] == 10.0
+        assert _idle(d.client, "tilt", d.rig.clock)["position_deg"] == 10.0
         r = d.client.post("/rig/axes/tilt/home")
         assert r.status_code == 200, r.text
         assert abs(r.json()["position_deg"]) < 0.05

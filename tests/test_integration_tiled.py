@@ -5,18 +5,32 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-pytest.importorskip("tiled.server", reason="the tiled extra (tiled[server]) is not installed")
-pytest.importorskip("bluesky.callbacks.tiled_writer", reason="the tiled extra needs bluesky")
-
 from engine_helpers import session, small_rig_config, small_sweep
-from tiled.client import from_uri
-from tiled.server import SimpleTiledServer
-
-from m2s2hil.integrations.tiled import ingest_session
 
 # Each test starts a local Tiled server and captures a session: seconds each.
 pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(autouse=True)
+def tiled_extra():
+    """Tiled and bluesky, imported when a test here runs, not when every worker collects (1.4 s of CPU)."""
+    pytest.importorskip("tiled.server", reason="the tiled extra (tiled[server]) is not installed")
+    pytest.importorskip("bluesky.callbacks.tiled_writer", reason="the tiled extra needs bluesky")
+
+
+def ingest_session(*args, **kw):
+    from m2s2hil.integrations.tiled import ingest_session
+
+    return ingest_session(*args, **kw)
+
+
+def start_server(tmp_path, readable):
+    """A local Tiled server serving ``readable`` in place, and a client of it."""
+    from tiled.client import from_uri
+    from tiled.server import SimpleTiledServer
+
+    server = SimpleTiledServer(tmp_path / "tiled", readable_storage=[readable])
+    return server, from_uri(server.uri)
 
 
 @pytest.fixture
@@ -28,9 +42,9 @@ def captured(tmp_path):
 
 @pytest.fixture
 def tiled_server(tmp_path, captured):
-    server = SimpleTiledServer(tmp_path / "tiled", readable_storage=[captured.path.parent])
+    server, client = start_server(tmp_path, captured.path.parent)
     try:
-        yield from_uri(server.uri)
+        yield client
     finally:
         server.close()
 
@@ -88,9 +102,8 @@ def test_the_bluesky_plan_streams_into_tiled_as_it_runs(tmp_path):
     cfg = small_rig_config(64)
     rig = open_simulated_rig(cfg)
     store = SessionStore.create(tmp_path / "bs", small_sweep(), cfg, session_id="bs", clock=rig.clock)
-    server = SimpleTiledServer(tmp_path / "tiled", readable_storage=[store.path.parent])
+    server, client = start_server(tmp_path, store.path.parent)
     try:
-        client = from_uri(server.uri)
         d = rig_devices(rig, store)
         RE = RunEngine({}, call_returns_result=True)
         RE(ensure_connected(d.turntable, d.tilt, d.lamps, d.camera))

@@ -7,20 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from m2s2hil.analysis.errors import AnalysisInputError, SegmenterUnavailableError
+from m2s2hil.analysis.evaluation.options import mtc_predictor
+from m2s2hil.analysis.metrics.mtc import mtc
+from m2s2hil.analysis.segmenters.sam import SamSegmenter
+from m2s2hil.analysis.segmenters.sam_model import SamArchitecture, build_sam_architecture
 from m2s2hil.analysis.segmenters.torchvision_shim import ensure_torchvision
+from m2s2hil.analysis.study.synthetic import synthetic_scene
 
-pytestmark = pytest.mark.slow  # importing torch alone costs 2-4 s of CPU
-
-torch = pytest.importorskip("torch", reason="the sam extra is not installed (pip install 'm2s2hil[sam]')")
-ensure_torchvision()  # segment-anything imports torchvision; the CPU torch wheel has no matching one
-pytest.importorskip("segment_anything.modeling", reason="segment-anything is not installed (the sam extra)")
-
-from m2s2hil.analysis.errors import AnalysisInputError, SegmenterUnavailableError  # noqa: E402
-from m2s2hil.analysis.evaluation.options import mtc_predictor  # noqa: E402
-from m2s2hil.analysis.metrics.mtc import mtc  # noqa: E402
-from m2s2hil.analysis.segmenters.sam import SamSegmenter  # noqa: E402
-from m2s2hil.analysis.segmenters.sam_model import SamArchitecture, build_sam_architecture  # noqa: E402
-from m2s2hil.analysis.study.synthetic import synthetic_scene  # noqa: E402
+pytestmark = pytest.mark.slow
 
 # SAM's modules at toy sizes: a 64-pixel input (4 × 4 patches), 16-wide features, one block each.
 TINY = SamArchitecture("tiny", encoder_embed_dim=16, encoder_depth=1, encoder_num_heads=2,
@@ -30,17 +25,22 @@ TINY = SamArchitecture("tiny", encoder_embed_dim=16, encoder_depth=1, encoder_nu
 FAST = {"points_per_side": 4, "points_per_batch": 16, "pred_iou_thresh": 0.0, "stability_score_thresh": 0.0}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: torch's thread pool costs more than it saves (5× the time on a busy 2-core box)."""
+@pytest.fixture(scope="module")
+def torch():
+    """torch and segment-anything, imported when a test here runs, not when every worker collects
+    (torch alone costs 2-4 s of CPU). Tiny tensors: torch's thread pool costs more than it saves
+    (5× the time on a busy 2-core box), so one thread."""
+    torch = pytest.importorskip("torch", reason="the sam extra is not installed (pip install 'm2s2hil[sam]')")
+    ensure_torchvision()  # segment-anything imports torchvision; the CPU torch wheel has no matching one
+    pytest.importorskip("segment_anything.modeling", reason="segment-anything is not installed (sam extra)")
     before = torch.get_num_threads()
     torch.set_num_threads(1)
-    yield
+    yield torch
     torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
+def checkpoint(tmp_path_factory, torch):
     torch.manual_seed(0)
     model = build_sam_architecture(TINY)
     path = tmp_path_factory.mktemp("sam") / "sam_tiny.pth"
@@ -53,7 +53,7 @@ def cube():
     return synthetic_scene((48, 48), n_materials=3, noise=0.01, seed=2)[0]
 
 
-def test_tiny_checkpoint_runs_the_papers_sam_setting_end_to_end(checkpoint, cube):
+def test_tiny_checkpoint_runs_the_papers_sam_setting_end_to_end(torch, checkpoint, cube):
     path, saved = checkpoint
     seg = SamSegmenter(path, model_type=TINY, generator_options=FAST)
     labels = seg.segment(cube)  # bands 5, 9, 10: auto masks, compositing, aligned majority vote
