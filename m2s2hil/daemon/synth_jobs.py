@@ -40,7 +40,7 @@ from m2s2hil.config import RigConfig
 from m2s2hil.errors import M2S2Error
 from m2s2hil.plan import CaptureEvent
 from m2s2hil.store.session import SessionStore
-from m2s2hil.twin.synth import FAILED_EVENT, STOPPED_EVENT, SynthPlan, SynthRun, planned_views
+from m2s2hil.twin.synth import SynthPlan, SynthRun, end_reason, planned_views
 
 from .admission import check_room
 from .errors import Conflict, PlanTooLarge, QueueFull
@@ -301,13 +301,8 @@ def disk_status(root: Path, session_id: str) -> dict[str, Any] | None:
         row = store.journal.session()
         done = len(store.completed_event_ids())
         total = planned_views(store) or done
-        error = None
-        for e in store.events():
-            p = e.get("payload") or {}
-            if e["kind"] == FAILED_EVENT:
-                error = p.get("error")
-            elif e["kind"] == STOPPED_EVENT:
-                error = f"stopped: {p.get('reason')}"
+        ended = end_reason(store)
+        error = None if ended is None else ended[1] if ended[0] == "failed" else f"stopped: {ended[1]}"
         state = row["state"]
         return {
             "session_id": session_id, "state": state, "live": False, "queue_position": None,

@@ -432,7 +432,7 @@ class SweepChecks:
     _seen: dict[str, int] = field(default_factory=dict)  # flag -> checked frames of this key with it
     _frames: list[Any] = field(default_factory=list)  # this key's checked frames (Observation)
     fitter: Any = None  # registration.Registrar of the joint fit over a lighting's frames
-    _fit_obs: list[Any] = field(default_factory=list)  # this key's checked frames (Observation)
+    _fit_obs: list[Any] = field(default_factory=list)  # this key's latest checked frames (Observation)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def due(self, key: Any) -> bool:
@@ -464,7 +464,8 @@ class SweepChecks:
                 o = Observation.from_meta(self.satellite, self.build, cube, meta, 128)
                 if o is not None and o.mask.any():
                     self._fit_obs.append(o)
-            fit_obs = list(self._fit_obs[-self.checks.config.joint_fit_frames:])
+                    del self._fit_obs[:-self.checks.config.joint_fit_frames]  # only the last few are fitted
+            fit_obs = list(self._fit_obs)
         res = self.checks.check(cube, self.satellite, self.build, float(az), float(tilt),
                                 list(meta.get("lamps_on") or []), float(meta.get("exposure_s") or 0.0),
                                 float(meta.get("gain") or 1.0), registered=reg, saturated=saturated,

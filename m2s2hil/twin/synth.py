@@ -156,8 +156,7 @@ class SynthRun:
         self.rig, self.plan, self.build, self.light = rig, plan, b, cond
         self.lights, self.weights = lights, weights
         self.total = len(self.tilts) * len(self.azimuths)
-        m = rig.camera.model
-        self._scene = Scene(plan.size, plan.size, m.bands_nm, m.fwhm_nm, m.layout, SceneParams())
+        self._scene = Scene(plan.size, plan.size, model.bands_nm, model.fwhm_nm, model.layout, SceneParams())
         self._scene.meshes.update(mesh_mockups(rig))  # MeshFileError (naming the file) before any write
         hil = [e for e in self.tilts if e in cat.elevations]
         sweep = Sweep(satellite=b.satellite, build=b.key, lighting=[cond.key],
@@ -274,6 +273,19 @@ def planned_views(store: SessionStore) -> int | None:
         return None
     views = json.loads(rows[0]["payload"]).get("views")
     return int(views) if isinstance(views, int | float) else None
+
+
+def end_reason(store: SessionStore) -> tuple[str, str] | None:
+    """Why a render ended before its last view: ("failed", the error) or ("stopped", the
+    reason) from its last stop or failure event; None when it recorded neither."""
+    rows = store.journal.query("SELECT kind, payload FROM events WHERE kind IN (?, ?) ORDER BY seq DESC"
+                               " LIMIT 1", (FAILED_EVENT, STOPPED_EVENT))
+    if not rows:
+        return None
+    p = json.loads(rows[0]["payload"] or "{}") or {}
+    if rows[0]["kind"] == FAILED_EVENT:
+        return "failed", str(p.get("error"))
+    return "stopped", str(p.get("reason"))
 
 
 def band_images(store: SessionStore, event_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -11,6 +11,7 @@ Self-contained like the HIL report (images inlined as base64).
 from __future__ import annotations
 
 import base64
+import functools
 import html
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.store.frame_files import decode_image
 from m2s2hil.store.records import FrameRecord
 from m2s2hil.store.session import SessionStore
-from m2s2hil.twin.synth import FAILED_EVENT, STOPPED_EVENT, planned_views, pose_key
+from m2s2hil.twin.synth import end_reason, planned_views, pose_key
 
 #: A colour per mask label (matplotlib's tab10 without its grey, then tab20's light ones); 0 is
 #: the background. The console's label overlay's (``api.console.pictures.PALETTE``, a layer
@@ -40,6 +41,7 @@ def label_colour(k: int) -> str:
     return PALETTE[(k - 1) % len(PALETTE)]
 
 
+@functools.cache
 def _lut() -> np.ndarray:
     lut = np.array([BACKGROUND_RGB] + [tuple(int(c[i:i + 2], 16) for i in (1, 3, 5)) for c in PALETTE],
                    dtype=np.uint8)
@@ -103,14 +105,8 @@ def _esc(v: Any) -> str:
 
 def _ended(store: SessionStore) -> str | None:
     """Why a render ended early (its stop or failure event), None when it did not say."""
-    why = None
-    for e in store.events():
-        p = e.get("payload") or {}
-        if e["kind"] == STOPPED_EVENT:
-            why = f"stopped: {p.get('reason')}"
-        elif e["kind"] == FAILED_EVENT:
-            why = f"failed: {p.get('error')}"
-    return why
+    ended = end_reason(store)
+    return None if ended is None else f"{ended[0]}: {ended[1]}"
 
 
 def synthetic_summary(views: Sequence[SyntheticView], planned: int) -> dict[str, Any]:

@@ -154,19 +154,19 @@ def foreground_mask(cube: np.ndarray, rule: ForegroundRule = "otsu") -> tuple[np
     log_e = np.log(energy + eps)
     t = float(threshold_otsu(log_e))
     if rule == "backdrop":
-        below = log_e[log_e <= t]
-        med = float(np.median(below))
-        mad = 1.4826 * float(np.median(np.abs(below - med)))
-        t = min(t, med + BACKDROP_MADS * mad)
+        t = min(t, _backdrop_bound(log_e[log_e <= t]))
     elif rule == "noise":
         # the same bound on the energy itself: the backdrop's spread is its noise (a dark backdrop
         # is mostly noise, whose log spreads far more than its value), so a face in the
         # spotlight's shadow a few noise SDs above it is found (in log it fell below 6 MADs)
-        below = energy[log_e <= t]
-        med = float(np.median(below))
-        mad = 1.4826 * float(np.median(np.abs(below - med)))
-        t = min(t, float(np.log(med + BACKDROP_MADS * mad + eps)))
+        t = min(t, float(np.log(_backdrop_bound(energy[log_e <= t]) + eps)))
     return log_e > t, float(np.exp(t) - eps)
+
+
+def _backdrop_bound(below: np.ndarray) -> float:
+    """The backdrop's median plus ``BACKDROP_MADS`` robust SDs (1.4826 × MAD) of ``below``."""
+    med = float(np.median(below))
+    return med + BACKDROP_MADS * 1.4826 * float(np.median(np.abs(below - med)))
 
 
 MIN_FIT_PIXELS = 50
