@@ -202,3 +202,29 @@ def test_process_raw_counts_saturation_at_the_uint16_edges(full_scale):
     np.testing.assert_array_equal(cells, cell_mask(sat, LAYOUT.n))
     corrected, _ = subtract_dark(raw, dark, full_scale=FS)
     np.testing.assert_array_equal(cube, SuperPixelDemosaicer(LAYOUT, raw.shape).process(corrected))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_process_raw_is_the_same_on_any_number_of_row_blocks(threads):
+    # one block of cell rows per numba thread: the split (and the QC rows that straddle it) must not
+    # show in the cube, the flags, the QC rows or the count
+    from numba import get_num_threads, set_num_threads
+
+    rng = np.random.default_rng(7)
+    shape = (4 * 37, 4 * 9)  # 37 cell rows: blocks of unequal size
+    raw = rng.integers(0, FS + 40, shape, dtype=np.uint16)
+    dark = rng.integers(0, 200, shape, dtype=np.uint16)
+    corrected, sat = subtract_dark(raw, dark, full_scale=FS)
+    sp = SuperPixelDemosaicer(LAYOUT, shape)
+    cells = np.empty(sp.out_shape[1:], bool)
+    qc = np.empty((-(-37 // 8), 4, shape[1]), np.uint16)
+    before = get_num_threads()
+    set_num_threads(min(threads, before))
+    try:
+        cube, n_sat = sp.process_raw(raw, dark, FS, cells, qc)
+    finally:
+        set_num_threads(before)
+    np.testing.assert_array_equal(cube, SuperPixelDemosaicer(LAYOUT, shape).process(corrected))
+    np.testing.assert_array_equal(cells, cell_mask(sat, 4))
+    np.testing.assert_array_equal(qc, corrected.reshape(37, 4, shape[1])[::8])
+    assert n_sat == int(sat.sum()) > 0

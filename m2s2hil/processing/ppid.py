@@ -14,6 +14,10 @@
    q of p's band at distance n, γ_q = 1 / (1 + 1-2-1 mean |R(p+δ) − R(q+δ)|) (kernels.py).
 3. Per band, the difference R − PPI at the band's samples is interpolated by WB and added back:
    Î_b = (PPI + WB_b(R − PPI)) / g_b.
+
+All four steps run in one pass (``kernels.ppid_kernel``): each block of rows keeps the balanced
+mosaic, PPI0, the edge weights and the PPI in small ring buffers, so memory sees the mosaic read
+once and the cube written once (no frame-sized intermediates).
 """
 
 from __future__ import annotations
@@ -51,13 +55,10 @@ class PPIDDemosaicer(Demosaicer):
         self.balance = balance
         self._tables = WBTables(layout, w)
         self._kernel = ppi_filter(layout.n)
-        self._balanced = np.empty((h, w), np.float32)
-        self.ppi0 = np.empty((h, w), np.float32)
-        self.ppi = np.empty((h, w), np.float32)
-        self._diff = np.empty((h, w), np.float32)
         self.gains = np.ones(layout.n_bands, np.float32)
-        self._nblocks_rows = self._blocks(h)
-        self._nblocks_cells = self._blocks(h // layout.n)
+        # per-pixel gains of the n row phases, tiled once (no ``x % n`` per pixel in the kernel)
+        self._tile = layout.array[:, np.arange(w) % layout.n]
+        self._nblocks = self._blocks(h // layout.n)
 
     @property
     def support_radius(self) -> int:
@@ -82,13 +83,20 @@ class PPIDDemosaicer(Demosaicer):
         self.balance = False
 
     def _run(self, mosaic: np.ndarray) -> None:
-        n = self.layout.n
         if self.balance:
             self.gains[:] = self.band_gains(mosaic)
-        gpos = self.gains[self.layout.array].astype(np.float32)
-        kernels.balance_kernel(mosaic, gpos, self._balanced, self._nblocks_rows)
-        src = self._balanced
-        kernels.tent_filter_kernel(src, self._kernel, n, self.ppi0, self._nblocks_rows)
-        kernels.ppi_refine_kernel(src, self.ppi0, n, self.ppi, self._diff, self._nblocks_rows)
-        inv = (1.0 / self.gains).astype(np.float32)
-        self._tables.run(self._diff, self.out, self._nblocks_cells, add=self.ppi, scale=inv)
+        t = self._tables
+        kernels.ppid_kernel(
+            mosaic,
+            self.gains[self._tile],
+            self._kernel,
+            t.pr,
+            t.pc,
+            t.start,
+            t.count,
+            t.fyt,
+            t.wrows,
+            (1.0 / self.gains).astype(np.float32),
+            self.out,
+            self._nblocks,
+        )

@@ -8,6 +8,7 @@ centroid of its positions, not at the cell centre (see docs/processing.md).
 from __future__ import annotations
 
 import numpy as np
+from numba import parallel_chunksize
 
 from m2s2hil.processing import kernels
 from m2s2hil.processing.demosaic import Demosaicer
@@ -15,6 +16,7 @@ from m2s2hil.processing.errors import FrameShapeError
 from m2s2hil.processing.mosaic import MosaicLayout
 
 _NO_DARK = np.zeros((0, 0), np.uint16)
+_NO_DARK.flags.writeable = False  # the kernel gets a read-only dark always: one specialisation
 _NO_QC = np.zeros((0, 1, 1), np.uint16)
 
 
@@ -66,6 +68,9 @@ class SuperPixelDemosaicer(Demosaicer):
                 f"{self.name}: raw must be C-contiguous uint16 {self.shape}, got {raw.dtype} {raw.shape}"
             )
         d = _NO_DARK if dark is None else np.ascontiguousarray(dark)
+        if d.flags.writeable:  # a read-only view: numba compiles the kernel once, not per flag
+            d = d.view()
+            d.flags.writeable = False
         if dark is not None and (d.shape != self.shape or d.dtype != np.uint16):
             raise FrameShapeError(
                 f"{self.name}: dark {d.dtype} {d.shape} does not fit raw frame uint16 {self.shape}"
@@ -79,9 +84,12 @@ class SuperPixelDemosaicer(Demosaicer):
         want = (-(-(h // n) // qc_step), n, w)
         if qc_rows is not None and (qc.shape != want or qc.dtype != np.uint16):
             raise FrameShapeError(f"{self.name}: qc_rows must be uint16 {want}, got {qc.dtype} {qc.shape}")
-        n_sat = kernels.dark_superpixel_rows(
-            raw, d, full_scale, *self._tables, self.out, cell_sat, qc, qc_step
-        )
+        # blocks of cell rows handed out one at a time, as the demosaicers' kernels: a worker that
+        # loses its core has its blocks taken over instead of stalling the frame
+        with parallel_chunksize(1):
+            n_sat = kernels.dark_superpixel_rows(
+                raw, d, full_scale, *self._tables, self.out, cell_sat, qc, qc_step, self._blocks(h // n)
+            )
         return self.out, int(n_sat)
 
     def centroids(self) -> np.ndarray:
