@@ -178,3 +178,30 @@ def test_clipped_bands_stay_with_a_per_pixel_mask():
         SpectralSegmenter(merge_noise=-1)
     with pytest.raises(AnalysisInputError):
         SpectralSegmenter(pool_target_deg=-1)
+
+
+def test_a_group_without_an_interior_is_not_a_material():
+    from m2s2hil.analysis.segmenters.spectral import cored_groups
+
+    fg = np.zeros((40, 40), dtype=bool)
+    fg[2:38, 2:38] = True
+    plane = np.zeros((40, 40), np.int64)
+    plane[2:38, 20] = 1  # a one-pixel seam: blends along a boundary
+    plane[5:10, 5:10] = 2  # a 5 × 5 part: 9 interior pixels
+    comp = plane[fg]
+    assert cored_groups(comp, fg, 3, 5).tolist() == [True, False, True]
+    assert cored_groups(comp, fg, 3, 10).tolist() == [True, False, False]
+    # nothing with an interior: the group with the largest one stays, so the object keeps a label
+    assert cored_groups(np.where(comp == 0, 1, comp), fg, 3, 10_000).tolist() == [False, True, False]
+
+
+def test_the_interior_test_is_wired_and_checked():
+    cube = np.zeros((10, 48, 48))
+    cube[:, 8:40, 8:24] = 100.0 * np.linspace(1.0, 2.0, 10)[:, None, None]
+    cube[:, 8:40, 24:40] = 100.0 * np.linspace(2.0, 1.0, 10)[:, None, None]
+    cube += np.random.default_rng(0).normal(0.0, 1.0, cube.shape)
+    assert n_segments(cube) == 2
+    assert n_segments(cube, min_core_fraction=0.6) == 1  # neither half has 60 % of the object inside
+    assert n_segments(cube, robust=False, min_core_fraction=0.6) == 2  # the issue-15 segmenter: unchanged
+    with pytest.raises(AnalysisInputError, match="min_core_fraction"):
+        SpectralSegmenter(min_core_fraction=1.0)
