@@ -24,6 +24,8 @@ def test_report_of_a_synthetic_session_shows_its_renders_and_masks(shared_sessio
     out = tmp_path / "r.html"
     r = run_cli("report", syn.session_id, "--root", syn.root, "--out", out)
     assert r.exit_code == 0, r.stderr
+    assert "synthetic: 4 of 4 view(s), 0 incomplete, 0 with an empty mask" in r.stdout
+    assert "QC" not in r.stdout  # a render has no QC to have "no scores" of
     text = out.read_text()
     assert "Synthetic session" in text and "4 of 4 planned" in text
     assert len(re.findall(r"<figcaption>band \d+ · \d+ nm", text)) == 20  # ten per elevation

@@ -10,7 +10,7 @@ from shared_sessions import synthetic_session_of
 
 from m2s2hil.analysis.segmenters.rgb import band_colours, camera_weights
 from m2s2hil.daemon.errors import Conflict
-from m2s2hil.daemon.listing import KILLED_RENDER_REASON, interrupted_sessions
+from m2s2hil.daemon.listing import KILLED_RENDER_REASON, end_killed_renders, interrupted_sessions
 from m2s2hil.plan import Sweep
 from m2s2hil.store.session import SessionStore
 from m2s2hil.twin.synth import SynthPlan, SynthRun
@@ -51,7 +51,7 @@ def test_a_render_another_process_holds_is_left_alone(tmp_path):
     run = SynthRun(root, cfg, SynthPlan("hubble", "B2", elevations=("E0",), azimuth_step_deg=180, size=16),
                    band_colours(bands, gamma=0.8), camera_weights(bands), session_id="syn-live")
     try:  # its owner lock held, as by a `m2s2hil synth` still rendering on this root
-        assert interrupted_sessions(root) == []
+        assert interrupted_sessions(root) == [] and end_killed_renders(root) == []
         with SessionStore.open(root, "syn-live") as st:
             assert st.state == "queued" and not any(e["kind"] == "synthetic_stopped" for e in st.events())
     finally:
@@ -75,6 +75,9 @@ def test_a_killed_capture_beside_a_render_is_still_resumed(tmp_path):
     with SessionStore.create(root, sweep, small_rig_config(64), session_id="hil-killed") as st:
         st.set_state("running")
     assert interrupted_sessions(root) == ["hil-killed"]
+    with SessionStore.open(root, "syn-beside") as st:  # listing what to resume changes nothing
+        assert st.state == "running"
+    assert end_killed_renders(root) == ["syn-beside"] and interrupted_sessions(root) == ["hil-killed"]
 
 
 def test_the_listing_counts_a_synthetic_sessions_views_after_a_restart(shared_sessions, tmp_path):

@@ -130,7 +130,11 @@ def report_cmd(
 
     with open_session(session, root) as store:
         path, summary = write_session_report(store, out, thumb_px=thumb, compute_missing=compute_missing)
-    if summary.get("scored"):
+    if summary.get("kind") == "synthetic":  # renders have no QC: say what the report holds
+        typer.echo(f"synthetic: {summary['views']} of {summary['planned']} view(s), "
+                   f"{len(summary['incomplete'])} incomplete, "
+                   f"{len(summary['empty_masks'])} with an empty mask")
+    elif summary.get("scored"):
         typer.echo(
             f"QC: {summary['scored']} frame(s), median {summary['median']:.3f}, min {summary['min']:.3f}, "
             f"{summary['flagged']} flagged (threshold {summary['threshold']:g})"

@@ -1,7 +1,7 @@
 """What the API lists and serves from the session store on disk: sessions, frames, frame
 files and a journal replayed as events. Functions here read; they change nothing, but for
-:func:`end_killed_render`, which a daemon start with resumption runs on a render a killed
-process left (:func:`interrupted_sessions`)."""
+:func:`end_killed_renders`, which a daemon start with resumption runs first, on the renders a
+killed process left unfinished (their own end: a render is not resumed)."""
 
 from __future__ import annotations
 
@@ -159,6 +159,8 @@ def journal_events(store: SessionStore) -> tuple[str, list[dict]]:
 
 
 
+#: Journal states a daemon start resumes a capture from.
+RESUMABLE = frozenset({"running", "pausing", "interrupted", "created", "queued"})
 #: Journal states of a render that had not ended when its process went away.
 UNFINISHED_RENDER = frozenset({"created", "queued", "running"})
 KILLED_RENDER_REASON = "its process ended before the render finished (found at daemon start)"
@@ -168,18 +170,20 @@ def interrupted_sessions(root: Path) -> list[str]:
     """The sessions a daemon start resumes, in order: those that were running, then those that
     were waiting, oldest first in each. Captures only: a synthetic session is never handed to
     the capture engine (it has no sweep to capture, and the engine would write HIL frames into
-    it); one a killed process left unfinished is ended here instead (:func:`end_killed_render`)."""
+    it); one a killed process left unfinished is ended by :func:`end_killed_renders` instead.
+    Reads only."""
     infos = list(reversed(list_sessions(root)))  # oldest first
-    candidates = {"running", "pausing", "interrupted", "created", "queued"}
-    synthetic: set[str] = set()
-    for i in infos:
-        if i.state in candidates and _kind(root, i.session_id) == "synthetic":
-            synthetic.add(i.session_id)
-            if i.state in UNFINISHED_RENDER:
-                end_killed_render(root, i.session_id)
-    hil = [i for i in infos if i.session_id not in synthetic]
+    hil = [i for i in infos if i.state not in RESUMABLE or _kind(root, i.session_id) != "synthetic"]
     first = [i.session_id for i in hil if i.state in ("running", "pausing", "interrupted")]
     return first + [i.session_id for i in hil if i.state in ("created", "queued")]
+
+
+def end_killed_renders(root: Path) -> list[str]:
+    """End every synthetic session a killed process left unfinished (:func:`end_killed_render`);
+    returns the ids ended."""
+    return [i.session_id for i in list_sessions(root)
+            if i.state in UNFINISHED_RENDER and _kind(root, i.session_id) == "synthetic"
+            and end_killed_render(root, i.session_id)]
 
 
 def _kind(root: Path, session_id: str) -> str | None:

@@ -143,6 +143,9 @@ class SessionManager:
         self._hold.restore()  # before anything is queued or dispatched
         resumed: list[str] = []
         if resume_interrupted:
+            ended = listing.end_killed_renders(self.root)  # a render is never resumed: its end
+            if ended:
+                log.info("ended %d render(s) a killed process left: %s", len(ended), ", ".join(ended))
             for sid in listing.interrupted_sessions(self.root):
                 try:
                     self.submissions.requeue(sid, reason="daemon start", check_limit=False)

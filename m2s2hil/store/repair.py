@@ -41,6 +41,17 @@ from m2s2hil.store.layout import JOURNAL, check_session_id
 from m2s2hil.store.owner_lock import OwnerLock
 
 _ROLE_RE = re.compile(r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?:tiff|png|jpg)$")
+# a file rewritten after capture (store/relabel: ``<frame>.<role>.<tag>.<ext>``, tag ``r<event>``)
+_TAGGED_RE = re.compile(
+    r"^(?P<name>.+)\.(?P<role>[a-z][a-z0-9_]{0,31})\.(?P<tag>[a-z0-9]{1,16})\.(?:tiff|png|jpg)$")
+#: meta["qc"][role] of a frame whose rewritten file the repair kept: what the journal said is lost
+RECOVERED = "recovered_by_repair"
+
+
+def _tag_order(tag: str) -> tuple[int, str]:
+    """Newest last: ``r<event>`` by its journal sequence number, other tags after them by name."""
+    m = re.fullmatch(r"r(\d{1,15})", tag)
+    return (int(m[1]), "") if m else (1 << 62, tag)
 
 
 @dataclass
@@ -53,11 +64,30 @@ class RepairReport:
     kept_journal: str = ""
     state: str = "paused"
 
+    @staticmethod
+    def kept_journal_name(stamp: str) -> str:
+        return f"{JOURNAL}.damaged-{stamp}"
+
     def line(self) -> str:
         q = f", {len(self.quarantined)} damaged file(s) moved to quarantine/" if self.quarantined else ""
         return (f"session {self.session_id}: journal rebuilt from the files: {self.frames} frame(s), "
                 f"{self.darks} dark(s), {self.skips} skip(s){q}; old journal kept as {self.kept_journal}; "
                 f"state {self.state}")
+
+
+def _recovered(meta: dict[str, Any], role: str, tag: str, kept_journal: str) -> dict[str, Any]:
+    """``meta`` with ``qc[role]`` saying the file is a later rewrite (``tag``) whose provenance
+    was in the journal (kept as ``kept_journal``); the capture-time record moves to
+    ``qc[role + "_superseded"]``, as a rewrite leaves it (store/relabel)."""
+    out = dict(meta)
+    qc = dict(out.get("qc") or {})
+    if isinstance(qc.get(role), dict):
+        qc[f"{role}_superseded"] = qc[role]
+    m = re.fullmatch(r"r(\d{1,15})", tag)
+    qc[role] = {RECOVERED: True, "tag": tag, "registration": {"event": int(m[1]) if m else None},
+                "provenance": f"in the damaged journal kept as {kept_journal}"}
+    out["qc"] = qc
+    return out
 
 
 def _description(data: bytes) -> dict[str, Any] | None:
@@ -147,12 +177,30 @@ def _rebuild(path: Path, session_id: str) -> RepairReport:
         os.replace(p, aside / p.name)
         report.quarantined.append((aside / p.name).relative_to(path).as_posix())
 
-    # Frames: group the files by name; the raw TIFF's metadata says which event it is.
+    # Frames: group the files by name; the raw TIFF's metadata says which event it is. A label
+    # map rewritten after capture (``sessions register``) carries a tag; the newest one stands
+    # for its role (the rewrite removed the older after its journal switched to it).
+    listing = [p for p in sorted((path / "frames").glob("*")) if p.is_file() and TMP_MARK not in p.name]
+    raws = {p.name[: -len(".raw.tiff")] for p in listing if p.name.endswith(".raw.tiff")}
     groups: dict[str, dict[str, Path]] = {}
-    for p in sorted((path / "frames").glob("*")):
+    rewritten: dict[str, dict[str, list[tuple[str, Path]]]] = {}
+    for p in listing:
         m = _ROLE_RE.match(p.name)
-        if p.is_file() and TMP_MARK not in p.name and m:
+        t = _TAGGED_RE.match(p.name)
+        if m and m["name"] not in raws and t and t["name"] in raws:
+            rewritten.setdefault(t["name"], {}).setdefault(t["role"], []).append((t["tag"], p))
+        elif m:
             groups.setdefault(m["name"], {})[m["role"]] = p
+    tags: dict[str, dict[str, str]] = {}  # frame name -> role -> tag of the rewritten file kept
+    for name, roles in rewritten.items():
+        for role, versions in roles.items():
+            versions.sort(key=lambda v: _tag_order(v[0]))
+            for _, older in versions[:-1]:
+                groups.setdefault(f"{name}.{role}.older", {})["stale"] = older  # no raw: quarantined
+            if role in groups.get(name, {}):  # the capture-time file an interrupted rewrite left
+                groups.setdefault(f"{name}.{role}.capture", {})["stale"] = groups[name].pop(role)
+            groups.setdefault(name, {})[role] = versions[-1][1]
+            tags.setdefault(name, {})[role] = versions[-1][0]
     frames: list[tuple[int, str, float, str | None, dict, dict]] = []
     for _name, files in groups.items():
         raw = files.get("raw")
@@ -180,6 +228,9 @@ def _rebuild(path: Path, session_id: str) -> RepairReport:
                 quarantine(p)
             else:
                 recs[role] = rec
+        for role, tag in tags.get(_name, {}).items():
+            if role in recs:  # the raw's metadata describes the capture-time file: say what stands
+                meta = _recovered(meta, role, tag, report.kept_journal_name(stamp))
         ev = meta["event"]
         when = float(meta.get("timestamp") or raw.stat().st_mtime)
         frames.append((int(ev["index"]), str(ev["event_id"]), when, meta.get("dark_id"), recs, meta))
@@ -228,7 +279,7 @@ def _rebuild(path: Path, session_id: str) -> RepairReport:
                 j.add_skip(event_id=s["event_id"], idx=int(s["index"]), reason=str(s["reason"]),
                            fault_class=str(s["fault_class"]), now=float(s["time"]))
                 report.skips += 1
-        report.kept_journal = f"{JOURNAL}.damaged-{stamp}"
+        report.kept_journal = report.kept_journal_name(stamp)
         j.add_event("repaired", {"frames": report.frames, "darks": report.darks, "skips": report.skips,
                                  "quarantined": report.quarantined, "old_journal": report.kept_journal,
                                  "from_manifest": bool(manifest)}, now)
