@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -20,7 +20,7 @@ SessionState = Literal[
     "created", "queued", "idle", "running", "pausing", "paused", "aborting", "completed", "failed",
     "aborted", "cancelled", "interrupted", "corrupt", "completed_with_gaps", "estopped", "damaged",
 ]
-_STATE_DOC = "One of: " + ", ".join(SessionState.__args__) + " (see docs/api.md)."
+_STATE_DOC = "One of: " + ", ".join(get_args(SessionState)) + " (see docs/api.md)."
 
 
 class _Out(BaseModel):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Iterator
-from typing import Literal
+from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException, Path, Request
 
@@ -40,9 +40,10 @@ def _axis_out(mc: ManualControl, role: AxisName, owner: str | None) -> dict:
     cfg = mc.rig.config.axes[role]
     homing = cfg.homing
     can_home = any(role in link.roles and link.homing is not None for link in mc.rig.links)
-    out = {"role": role, "min_deg": cfg.min_deg, "max_deg": cfg.max_deg, "max_speed_dps": cfg.max_speed_dps,
-           "homing": homing, "can_home": can_home and homing == "switches", "position_deg": None,
-           "moving": None, "error": None}
+    out: dict[str, Any] = {"role": role, "min_deg": cfg.min_deg, "max_deg": cfg.max_deg,
+                           "max_speed_dps": cfg.max_speed_dps, "homing": homing,
+                           "can_home": can_home and homing == "switches", "position_deg": None,
+                           "moving": None, "error": None}
     if owner is None:
         try:
             v = mc.axis_view(role)

@@ -40,7 +40,7 @@ router = APIRouter(tags=["console pictures"])
 
 Coord = Annotated[int, Query(ge=0, le=65535, description="Sensor pixel (0-based).")]
 Size = Annotated[int, Query(ge=1, le=65536, description="Region size in sensor pixels (default: one cell).")]
-PNG = {200: {"content": {"image/png": {}}, "description": "PNG image."}}
+PNG: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {}}, "description": "PNG image."}}
 
 
 class SpectrumOut(BaseModel):
@@ -90,7 +90,8 @@ def _spectrum(raw: np.ndarray, dark: np.ndarray | None, dark_label: str | None, 
               x: int, y: int, w: int, h: int, exposure_s: float, gain: float, lighting: str | None,
               console: Any, notes: list[str]) -> dict[str, Any]:
     model = console.manager.rig.config.camera.model
-    calib, prov = _calibration(console)
+    calib, provenance = _calibration(console)
+    prov = provenance or {}  # the white reference's capture (empty without one)
     layout = _layout(model, calib)
     sensor = (int(raw.shape[1]), int(raw.shape[0]))
     region = snap_region(x, y, w, h, sensor, layout.n)
@@ -366,9 +367,10 @@ def _stored_frame(store: SessionStore, session_id: str, n: int) -> FrameRecord:
 
 def _twin_of(fr: FrameRecord) -> tuple[dict[str, Any], dict[str, Any]]:
     """(the twin's checks, the projected labels' metadata) of a frame, each {} when absent."""
-    qc = fr.meta.get("qc")
-    qc = qc if isinstance(qc, dict) else {}
-    twin = qc.get("twin") if isinstance(qc.get("twin"), dict) else {}
+    raw_qc = fr.meta.get("qc")
+    qc: dict[str, Any] = raw_qc if isinstance(raw_qc, dict) else {}
+    raw_twin = qc.get("twin")
+    twin: dict[str, Any] = raw_twin if isinstance(raw_twin, dict) else {}
     labels = qc.get(PROJECTED) or fr.meta.get(PROJECTED)
     return twin, labels if isinstance(labels, dict) else {}
 

@@ -110,7 +110,7 @@ async def get_console(request: Request, mg: SessionManager = Depends(get_manager
                 console = Console(mg, live, DarkLibrary(mg.root / "darks"), calibration_path_for(mg), cam)
                 mg.guard.before_session.append(cam.release)  # a session never meets a streaming camera
                 request.app.state.console = console
-    return console  # type: ignore[no-any-return]
+    return console
 
 
 ConsoleDep = Annotated[Console, Depends(get_console)]
