@@ -174,6 +174,9 @@ class Sensor:
             if rate_e_per_s.shape != (h, w):
                 raise ValueError(f"signal is {rate_e_per_s.shape}, sensor is {(h, w)}")
             rate, has = np.ascontiguousarray(rate_e_per_s, dtype=np.float32), True
+        if rate.flags.writeable:  # read-only always (the kernel only reads it): one numba specialisation
+            rate = rate.view()
+            rate.flags.writeable = False
         if out is None:
             out = np.empty((h, w), dtype=np.uint16)
         p = self.params

@@ -205,6 +205,9 @@ def shade(
     for the spotlight, or None.
     """
     h, w = label.shape
+    if label.flags.writeable:  # read-only always (the kernel only reads it): one numba specialisation
+        label = label.view()
+        label.flags.writeable = False
     out_d = np.empty((h, w), dtype=np.float32)
     out_s = np.empty((h, w), dtype=np.float32)
     out_rate = np.empty((h, w), dtype=np.float32)

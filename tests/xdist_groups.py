@@ -24,7 +24,9 @@ from pathlib import Path
 from xdist.scheduler import LoadScopeScheduling
 
 KERNEL_MODULES = frozenset({"test_demosaic.py", "test_calibration.py", "test_processing_pipeline.py",
-                            "test_processing_stability.py"})
+                            "test_processing_stability.py",
+                            # PPID's and WB's kernels, uint16 and float32, against a NumPy reference
+                            "test_ppid_fused.py"})
 SHARED_SCOPES = frozenset({"module", "class", "package"})
 
 
