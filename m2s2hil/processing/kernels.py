@@ -81,6 +81,24 @@ def _hinterp(src, row, c, n, nearest, dst, tmp):
 # --- weighted bilinear ------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _blend_rows(rows, pr, fyt, wrows, s, cnt, cy, py, o):
+    """Output row ``o`` (cell row ``cy``, row phase ``py``) of a band on positions ``s``..``s + cnt``:
+    the weighted sum of its sub-lattices' vertical interpolations between the ring buffer's
+    horizontally interpolated sample rows (``rows[p, k % 3]``)."""
+    w = o.shape[0]
+    for x in range(w):
+        o[x] = 0.0
+    for p in range(s, s + cnt):
+        k0 = cy - 1 if py < pr[p] else cy
+        a_row = rows[p, k0 % 3]
+        b_row = rows[p, (k0 + 1) % 3]
+        fy = fyt[p, py]
+        wt = wrows[p, py]
+        for x in range(w):
+            o[x] += wt[x] * (a_row[x] + fy * (b_row[x] - a_row[x]))
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def wb_kernel(src, pr, pc, band_start, band_count, fyt, wrows, add, scale, nearest, out, nblocks):
     """Weighted bilinear demosaicing of ``src`` (H, W) into ``out`` (bands, H, W).
@@ -159,16 +177,7 @@ def wb_kernel(src, pr, pc, band_start, band_count, fyt, wrows, add, scale, neare
                                     a2[x] + f2 * (b2[x] - a2[x])
                                 )
                     else:
-                        for x in range(w):
-                            o[x] = 0.0
-                        for p in range(s, s + cnt):
-                            k0 = cy - 1 if py < pr[p] else cy
-                            a_row = rows[p, k0 % 3]
-                            b_row = rows[p, (k0 + 1) % 3]
-                            fy = fyt[p, py]
-                            wt = wrows[p, py]
-                            for x in range(w):
-                                o[x] += wt[x] * (a_row[x] + fy * (b_row[x] - a_row[x]))
+                        _blend_rows(rows, pr, fyt, wrows, s, cnt, cy, py, o)
                         if has_add:
                             for x in range(w):
                                 o[x] = sc * (o[x] + ad[x])
@@ -729,16 +738,7 @@ def _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, cy, n,
                         + ad[x]
                     )
             else:
-                for x in range(w):
-                    o[x] = 0.0
-                for p in range(s, s + cnt):
-                    k0 = cy - 1 if py < pr[p] else cy
-                    a_row = rows[p, k0 % 3]
-                    b_row = rows[p, (k0 + 1) % 3]
-                    fy = fyt[p, py]
-                    wp = wrows[p, py]
-                    for x in range(w):
-                        o[x] += wp[x] * (a_row[x] + fy * (b_row[x] - a_row[x]))
+                _blend_rows(rows, pr, fyt, wrows, s, cnt, cy, py, o)
                 for x in range(w):
                     o[x] = sc * (o[x] + ad[x])
 
