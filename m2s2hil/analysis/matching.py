@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from sklearn.metrics.cluster import contingency_matrix
 
 from m2s2hil.analysis.arrays import as_label_map, same_shape
 
@@ -67,6 +66,8 @@ def match_clusters(
     cand_clusters = [c for c in clusters if int(c) not in mapping]
     cand_classes = [c for c in classes if not (keep_background and c == 0)]
     if cand_clusters and cand_classes and gv.size:
+        from sklearn.metrics.cluster import contingency_matrix  # loaded on first use
+
         table = contingency_matrix(gv, pv)  # rows: np.unique(gv), cols: np.unique(pv)
         rows = np.searchsorted(classes, cand_classes)
         seen = np.unique(pv)

@@ -42,7 +42,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from sklearn.metrics import confusion_matrix, precision_recall_fscore_support
 
 from m2s2hil.analysis.arrays import as_label_map, same_shape
 from m2s2hil.analysis.errors import AnalysisInputError
@@ -163,6 +162,8 @@ def _counts(g: np.ndarray, p: np.ndarray, labs: tuple[int, ...]) -> tuple[np.nda
     with warnings.catch_warnings():
         # sklearn warns about a single label even when ``labels`` is given, as it is here.
         warnings.filterwarnings("ignore", message="A single label", category=UserWarning)
+        from sklearn.metrics import confusion_matrix  # loaded on first use (2 s of CPU a process)
+
         cm = confusion_matrix(g, p, labels=universe)  # rows: gt, columns: pred
     idx = np.searchsorted(universe, np.asarray(labs, dtype=np.int64))
     tp = np.diag(cm)[idx].astype(np.int64)
@@ -196,6 +197,8 @@ def segmentation_scores(
         mean = _nanmean(ratio)
         return SegmentationScores(labs, ratio, ratio, ratio, zeros, zeros, zeros, mean, mean, mean,
                                   zd, int(g.size), zd)
+    from sklearn.metrics import precision_recall_fscore_support
+
     prec, rec, dice, _ = precision_recall_fscore_support(
         g, p, labels=list(labs), average=None, zero_division=zd
     )

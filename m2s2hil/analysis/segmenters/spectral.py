@@ -92,15 +92,13 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from scipy import ndimage
 from scipy.special import xlogy
 from skimage.filters import threshold_otsu
 from skimage.segmentation import slic
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.mixture import BayesianGaussianMixture, GaussianMixture
 from threadpoolctl import threadpool_limits
 
 from m2s2hil.analysis.arrays import as_cube
@@ -115,6 +113,9 @@ from m2s2hil.analysis.segmenters.normalise import (
     superpixel_means,
 )
 from m2s2hil.catalog import load_catalog
+
+if TYPE_CHECKING:  # scikit-learn loads with the first fit (2 s of CPU a process that never fits)
+    from sklearn.mixture import BayesianGaussianMixture, GaussianMixture
 
 CovarianceType = Literal["full", "tied", "diag", "spherical"]
 Criterion = Literal["bic", "icl", "bayes"]
@@ -410,6 +411,9 @@ class SpectralSegmenter:
         return self.analyse(cube).labels
 
     def _fit(self, sample: np.ndarray, n: int) -> GaussianMixture:
+        from sklearn.exceptions import ConvergenceWarning
+        from sklearn.mixture import GaussianMixture
+
         gm = GaussianMixture(
             n_components=n,
             covariance_type=self.covariance_type,
@@ -422,6 +426,9 @@ class SpectralSegmenter:
             return gm.fit(sample)
 
     def _fit_bayes(self, sample: np.ndarray, upper: int) -> BayesianGaussianMixture:
+        from sklearn.exceptions import ConvergenceWarning
+        from sklearn.mixture import BayesianGaussianMixture
+
         """Variational mixture with a sparse Dirichlet weight prior: surplus components get ~0 weight."""
         bgm = BayesianGaussianMixture(
             n_components=upper,
