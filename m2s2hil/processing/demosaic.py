@@ -16,6 +16,7 @@ from numba import get_num_threads, parallel_chunksize
 from m2s2hil.config import DEMOSAIC_METHODS, check_demosaic_method
 from m2s2hil.processing.errors import FrameShapeError, LayoutError, UnknownMethodError
 from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.processing.streaming import aligned_empty
 
 #: The method names, known below processing (the rig file checks them without importing numba);
 #: :func:`_registry` has a class for each (tests/test_config.py).
@@ -38,7 +39,8 @@ class Demosaicer(ABC):
             )
         self.layout = layout
         self.shape = layout.check_frame(tuple(shape))
-        self.out = np.empty(self.out_shape, dtype=np.float32)
+        # on a cache line: the full-resolution kernels stream their rows into it (streaming.py)
+        self.out = aligned_empty(self.out_shape)
 
     @property
     def out_shape(self) -> tuple[int, int, int]:

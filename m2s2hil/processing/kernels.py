@@ -2,8 +2,10 @@
 
 Every kernel works for any period n; the common 4×4 case has unrolled fast paths that LLVM
 vectorises (a runtime n leaves short inner loops it cannot). Kernels are parallel over blocks
-of rows (the small super-pixel one is serial), each block with its own scratch rows, and write
-into caller-provided outputs.
+of rows (``superpixel_rows`` is serial), each block with its own scratch rows, and write into
+caller-provided outputs. The kernels that write a cube build each output row in a scratch row
+and stream it out (``streaming.stream_copy``): a cube does not fit any cache, and ordinary
+stores would read every line of it before writing it.
 ``cache=True`` keeps the compiled code in ``__pycache__`` so only the first run pays the
 compile time; ``fastmath`` stays off so results do not depend on reassociation.
 """
@@ -12,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+
+from m2s2hil.processing.streaming import store_fence, stream_copy
 
 # --- shared helpers ---------------------------------------------------------------------------
 
@@ -126,6 +130,7 @@ def wb_kernel(src, pr, pc, band_start, band_count, fyt, wrows, add, scale, neare
             continue
         rows = np.empty((n_pos, 3, w), np.float32)  # ring buffer of interpolated sample rows
         tmp = np.empty(w // n, np.float32)
+        o = np.empty(w, np.float32)  # each output row is built here, then streamed to ``out``
         for k in range(y_lo - 1, y_lo + 1):
             kk = min(max(k, 0), kh - 1)
             for p in range(n_pos):
@@ -138,7 +143,6 @@ def wb_kernel(src, pr, pc, band_start, band_count, fyt, wrows, add, scale, neare
                 y = cy * n + py
                 ad = add[y] if has_add else rows[0, 0]
                 for b in range(n_bands):
-                    o = out[b, y]
                     s = band_start[b]
                     sc = scale[b] if has_add else np.float32(1.0)
                     cnt = band_count[b]
@@ -181,6 +185,8 @@ def wb_kernel(src, pr, pc, band_start, band_count, fyt, wrows, add, scale, neare
                         if has_add:
                             for x in range(w):
                                 o[x] = sc * (o[x] + ad[x])
+                    stream_copy(out[b, y], o)
+        store_fence()
 
 
 # --- super-pixel ------------------------------------------------------------------------------
@@ -215,13 +221,14 @@ def superpixel_rows(src, pr, pc, band_start, band_count, out, cy_lo, cy_hi):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, out, cy):
+def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, o, out, cy):
     """The 4×4 case of one cell row: the n rows are split into one uint16 plane per cell position
     (a loop that reads all four phases of a cell vectorises; four loops with stride 4 do not:
     1.3–1.6× slower in median), then each band is the mean of its planes, converted to float32
     as it is read and summed in the same order as the general path (identical results). uint16
     planes rather than float32 ones: the split moves half the bytes and rows + planes (32 KB)
-    stay in L1 (≈ 20 % less time for split + means, docs/benchmarks.md)."""
+    stay in L1 (≈ 20 % less time for split + means, docs/benchmarks.md). Each band's row is built
+    in the scratch row ``o`` and streamed to ``out`` (streaming.py: no read for ownership)."""
     kw = rows.shape[1] // 4
     for py in range(4):
         c = rows[py]
@@ -242,26 +249,25 @@ def _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, 
     for b in range(band_start.shape[0]):
         s = band_start[b]
         cnt = band_count[b]
-        o = out[b, cy]
         f = planes[4 * pr[s] + pc[s]]
         if cnt == 1:
             for cx in range(kw):
                 o[cx] = np.float32(f[cx])
-            continue
-        if cnt == 2:
+        elif cnt == 2:
             g = planes[4 * pr[s + 1] + pc[s + 1]]
             for cx in range(kw):
                 o[cx] = (np.float32(f[cx]) + np.float32(g[cx])) * np.float32(0.5)
-            continue
-        for cx in range(kw):
-            o[cx] = np.float32(f[cx])
-        for p in range(s + 1, s + cnt):
-            g = planes[4 * pr[p] + pc[p]]
+        else:
             for cx in range(kw):
-                o[cx] += np.float32(g[cx])
-        inv = np.float32(1.0 / cnt)
-        for cx in range(kw):
-            o[cx] *= inv
+                o[cx] = np.float32(f[cx])
+            for p in range(s + 1, s + cnt):
+                g = planes[4 * pr[p] + pc[p]]
+                for cx in range(kw):
+                    o[cx] += np.float32(g[cx])
+            inv = np.float32(1.0 / cnt)
+            for cx in range(kw):
+                o[cx] *= inv
+        stream_copy(out[b, cy], o)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -312,6 +318,7 @@ def _dark_superpixel_span(raw, dark, has_dark, never, fs, full_scale, pr, pc, ba
     scratch = np.empty((n, w), np.uint16)
     planes = np.empty((n * n, kw), np.uint16)
     halves = np.empty((2, w // 2), np.uint16)
+    orow = np.empty(kw, np.float32)
     n_sat = 0
     for cy in range(cy_lo, cy_hi):
         keep = qc.shape[0] > 0 and cy % qc_step == 0
@@ -345,7 +352,7 @@ def _dark_superpixel_span(raw, dark, has_dark, never, fs, full_scale, pr, pc, ba
                 n_sat += hits
                 flags[cx] = hits > 0
         if n == 4:
-            _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, out, cy)
+            _superpixel_cell_row4(rows, pr, pc, band_start, band_count, planes, halves, orow, out, cy)
             continue
         for b in range(n_bands):
             s = band_start[b]
@@ -362,6 +369,7 @@ def _dark_superpixel_span(raw, dark, has_dark, never, fs, full_scale, pr, pc, ba
                 inv = np.float32(1.0 / cnt)
                 for cx in range(kw):
                     o[cx] *= inv
+    store_fence()
     return n_sat
 
 
@@ -699,9 +707,10 @@ def _hinterp_all(df, pr, pc, n, rows, slot, tmp):
 
 
 @njit(cache=True, error_model="numpy")
-def _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, cy, n, out):
+def _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, cy, n, o, out):
     """``out[b]`` for the n rows of cell row ``cy``: scale[b] · (WB_b(R − PPI) + PPI), the WB sample
-    rows of cell rows cy − 1 .. cy + 1 in ``rows[:, k % 3]`` (``wb_kernel``'s arithmetic)."""
+    rows of cell rows cy − 1 .. cy + 1 in ``rows[:, k % 3]`` (``wb_kernel``'s arithmetic); each row
+    is built in the scratch row ``o`` and streamed to ``out``."""
     n_bands = band_start.shape[0]
     pps = pp.shape[0]
     w = out.shape[2]
@@ -712,7 +721,6 @@ def _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, cy, n,
         for py in range(n):
             y = cy * n + py
             ad = pp[y % pps]
-            o = out[b, y]
             if cnt == 1:
                 k0 = cy - 1 if py < pr[s] else cy
                 a_row = rows[s, k0 % 3]
@@ -741,6 +749,7 @@ def _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, cy, n,
                 _blend_rows(rows, pr, fyt, wrows, s, cnt, cy, py, o)
                 for x in range(w):
                     o[x] = sc * (o[x] + ad[x])
+            stream_copy(out[b, y], o)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -784,6 +793,7 @@ def ppid_kernel(src, gain_rows, taps, pr, pc, band_start, band_count, fyt, wrows
         tmp = np.empty(w // n, np.float32)
         num = np.empty(w, np.float32)
         den = np.empty(w, np.float32)
+        orow = np.empty(w, np.float32)
         p_next = max(0, (cy_lo - 1) * n)  # next row of each stage
         p0_next = max(0, p_next - n)
         h_next = p0_next - half  # virtual row index (out-of-frame rows map onto the same phase)
@@ -815,7 +825,8 @@ def ppid_kernel(src, gain_rows, taps, pr, pc, band_start, band_count, fyt, wrows
                 p_next += 1
             _hinterp_all(df, pr, pc, n, rows, k % 3, tmp)
             if k - 1 >= cy_lo:  # the sample rows below cell row k − 1 are in: write it
-                _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, k - 1, n, out)
+                _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, k - 1, n, orow, out)
+        store_fence()
 
 
 # --- calibration: crosstalk and white reference -----------------------------------------------
