@@ -48,6 +48,12 @@ def stored_frames(root: Path) -> int:
         store.close()
 
 
+# Ctrl-C as from an operator's terminal: SIGINT at its default. A test run started in the
+# background by a shell (``pytest … &``, ``nohup``) ignores SIGINT, and an ignored signal stays
+# ignored across exec, so the command would never see the key press.
+OPERATOR_SHELL = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+
+
 def until(pred: Callable[[], object], timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not pred():
@@ -59,7 +65,7 @@ def until(pred: Callable[[], object], timeout: float, what: str) -> None:
 @pytest.mark.slow
 def test_second_ctrl_c_stops_at_once_with_the_rig_safe_and_the_frames_kept(tmp_path):
     rig, out, err_path = stuck_rig(tmp_path), tmp_path / "data", tmp_path / "stderr.txt"
-    code = "import sys; from m2s2hil.cli import capture_main; sys.argv[0] = 'capture'; capture_main()"
+    code = OPERATOR_SHELL + "from m2s2hil.cli import capture_main; sys.argv[0] = 'capture'; capture_main()"
     args = ["--sat", "voyager", "--build", "B2", "--light", "weak", "--tilt", "E1", "--azimuth-step", "90",
             "--rig", str(rig), "--out", str(out), "--realtime"]
     with err_path.open("w") as err:
@@ -104,7 +110,7 @@ def test_second_ctrl_c_stops_at_once_with_the_rig_safe_and_the_frames_kept(tmp_p
 def test_first_ctrl_c_pauses_at_the_next_boundary_and_exits_130(tmp_path):
     """One Ctrl-C on a rig that is not stuck: paused at a boundary, saved, resumable (130)."""
     rig, out, err_path = small_rig(tmp_path), tmp_path / "data", tmp_path / "stderr.txt"
-    code = "import sys; from m2s2hil.cli import capture_main; sys.argv[0] = 'capture'; capture_main()"
+    code = OPERATOR_SHELL + "from m2s2hil.cli import capture_main; sys.argv[0] = 'capture'; capture_main()"
     args = ["--sat", "voyager", "--build", "B2", "--light", "weak", "--tilt", "E1", "--azimuth-step", "30",
             "--rig", str(rig), "--out", str(out), "--realtime"]
     with err_path.open("w") as err:

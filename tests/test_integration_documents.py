@@ -69,7 +69,8 @@ def test_a_changed_file_is_refused(tmp_path, hubble):
             cat(name, doc)
         first = st.frames()[0]
         path = st.path / first.files["raw"].path
-    path.write_bytes(path.read_bytes()[:-1] + b"\x00")
+    data = path.read_bytes()
+    path.write_bytes(data[:-1] + bytes([data[-1] ^ 0xFF]))  # a changed byte, whatever it was
     run, = cat.runs.values()
     ev = next(e for e in run.stream("primary") if e["data"]["event_id"] == first.event_id)
     with pytest.raises(DocumentError, match="sha256"):

@@ -45,7 +45,8 @@ def test_a_tampered_dark_is_named(tmp_path):
     out = tmp_path / "release"
     export_session(orig, out, "m2s2")
     dark = next((out / "metadata" / orig.session_id).glob("*.tiff"))
-    dark.write_bytes(dark.read_bytes()[:-1] + b"\x00")
+    data = dark.read_bytes()
+    dark.write_bytes(data[:-1] + bytes([data[-1] ^ 0xFF]))  # a changed byte, whatever it was
     with pytest.raises(DatasetImportError, match="sha256"):
         import_dataset(out, tmp_path / "imported")
     orig.close()

@@ -66,7 +66,8 @@ def test_the_session_check_finds_a_changed_and_a_stray_file(soak: tuple[Result, 
     shutil.copytree(work / "data" / done.sid, root / done.sid)
     assert check_session(root, done.sid, set()).problems == []
     raw = sorted((root / done.sid / "frames").glob("*.raw.tiff"))[0]
-    raw.write_bytes(raw.read_bytes()[:-1] + b"\0")
+    data = raw.read_bytes()
+    raw.write_bytes(data[:-1] + bytes([data[-1] ^ 0xFF]))  # a changed byte (setting it could be a no-op)
     (root / done.sid / "frames" / "stray.raw.tiff").write_bytes(b"x")
     problems = check_session(root, done.sid, {"weak/E9/az999/f0"}).problems
     text = "\n".join(problems)
@@ -81,6 +82,20 @@ def test_a_frame_stored_while_held_is_a_violation(tmp_path: Path) -> None:
     op = HoldWindow("operator", 0.0, {"a": Counts(frozenset(), 1, "running")}, "a")
     op.compare({"a": Counts(frozenset({"y"}), 1, "running")}, "at the release")
     assert op.violations == []  # the session running at an operator's hold may finish its run
+
+
+def test_what_the_first_run_loads_is_warm_up_not_growth() -> None:
+    """Idle before its first session a daemon has not loaded QC's libraries yet: the baseline is
+    the idle time after its first run. Growth after that still fails."""
+    mib = 1024
+    cold = [Sample(0, float(i), 306 * mib, 20, 20, 0, 8, idle=True) for i in range(8)]
+    run = [Sample(0, 8.0 + i, 430 * mib, 22, 22, 1, 12, idle=False) for i in range(3)]
+    warm = [Sample(0, 11.0 + i, 419 * mib, 20, 20, 1, 8, idle=True) for i in range(12)]
+    (f,) = flatness(cold + run + warm)
+    assert f.ok and f.rss_first_kib == f.rss_last_kib == 419 * mib
+    grows = [Sample(0, 11.0 + i, (419 + 20 * i) * mib, 20, 20, 1, 8, idle=True) for i in range(12)]
+    (g,) = flatness(cold + run + grows)
+    assert not g.ok and g.rss_last_kib > g.rss_first_kib
 
 
 def test_growing_descriptors_are_not_flat() -> None:
