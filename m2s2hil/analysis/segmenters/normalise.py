@@ -33,8 +33,9 @@ import numpy as np
 
 from m2s2hil.analysis.errors import AnalysisInputError
 
-PLATEAU_REL_TOL = 0.004  # a clipped band: values within 0.4 % of its maximum (≈ 4 DN on 10 bits)
+PLATEAU_REL_TOL = 0.004  # a plateau bin's width: 0.4 % of the band's maximum (≈ 4 DN on 10 bits)
 PLATEAU_MIN_PIXELS = 20
+PLATEAU_SEARCH = 2  # top bins (tolerance wide) that may hold the plateau: its outliers reach one above
 PLATEAU_MIN_FRACTION = 0.002  # of the foreground: a natural tail puts far fewer pixels that close
 MIN_UNCLIPPED = 0.05  # share of the foreground unclipped in every kept band (else bands go)
 MIN_BANDS = 3
@@ -90,7 +91,15 @@ def normalise_cube(
 
 def clipped_bands(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
     """(bands, H, W) bool: per band, the pixels on a clipping plateau (see module docstring);
-    a band without a plateau has none."""
+    a band without a plateau has none.
+
+    The plateau is found at the most populated bin of the band's top ``PLATEAU_SEARCH`` bins, not
+    at the band's maximum: dark subtraction leaves every clipped pixel at full scale minus its own
+    dark value, so the plateau is a few DN wide, and a few pixels with a low dark value sit above
+    it. Anchored at the maximum, a tolerance of a few DN missed half the plateau (Hubble B1 at
+    200 % peak: 2 500 of 13 000 clipped values of a band, and whole bands whose maximum was 5 DN
+    above the plateau's centre).
+    """
     out = np.zeros(cube.shape, dtype=bool)
     n_fg = int(fg.sum())
     need = max(PLATEAU_MIN_PIXELS, int(PLATEAU_MIN_FRACTION * n_fg))
@@ -99,15 +108,25 @@ def clipped_bands(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
         top = float(band.max())
         if top <= 0:
             continue
-        # the width of the top bin: the relative tolerance, but at least one quantisation step
+        # the width of a bin: the relative tolerance, but at least one quantisation step
         # (at low exposure a natural tail of integer-like values has many pixels *at* its maximum)
         levels = np.unique(band[band >= 0.9 * top])
         step = float(np.min(np.diff(levels))) if levels.size > 1 else 0.0
         delta = max(PLATEAU_REL_TOL * top, step)
-        near = band >= top - delta
+        n_bins = PLATEAU_SEARCH + 4  # the search window and a shoulder below it
+        edges = top - delta * np.arange(n_bins, -1, -1)
+        counts, _ = np.histogram(band[band >= edges[0]], bins=edges)
+        mode = n_bins - 1 - int(np.argmax(counts[::-1][:PLATEAU_SEARCH]))  # the top-most fullest bin
+        # the plateau reaches down while a bin holds a tenth of the fullest and twice the one below
+        lo = mode
+        while lo >= 2 and counts[lo - 1] > max(2 * counts[lo - 2], 0.1 * counts[mode]):
+            lo -= 1
+        near = band >= edges[lo]
         n_near = int(near.sum())
-        shoulder = int(np.count_nonzero((band >= top - 4 * delta) & ~near))  # a bin three times wider
-        if n_near >= need and n_near > shoulder:  # a spike at the top, not a falling tail
+        shoulder = int(np.count_nonzero((band >= edges[lo] - 3 * delta) & ~near))  # three bins below
+        # a spike: the fullest bin holds more than the three times wider bin below the plateau (a
+        # natural tail, falling or flat, does not)
+        if n_near >= need and int(counts[mode]) > shoulder:
             out[b] = near
     return out
 

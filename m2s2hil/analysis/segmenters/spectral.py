@@ -103,6 +103,7 @@ from threadpoolctl import threadpool_limits
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.analysis.segmenters.censored import explained, merge_censored, plateau_levels
 from m2s2hil.analysis.segmenters.normalise import (
     Reliability,
     guided_denoise,
@@ -137,6 +138,7 @@ class SpectralSegmentation:
     bands: tuple[int, ...] = ()  # bands the features used (clipped bands left out); () = all
     fit: np.ndarray | None = None  # bool (H, W): the pixels the mixture was fitted on
     pooled: int = 1  # pixels the cube was averaged over before the fit (filter or superpixel; 1 = none)
+    censored: np.ndarray | None = None  # bool (H, W): saturated pixels no material explained, fitted apart
 
 
 ForegroundRule = Literal["noise", "backdrop", "otsu"]
@@ -180,6 +182,7 @@ MIN_FIT_PIXELS = 50
 # fixed 3° rules; at 4 % peak it is ≈ 6° and a fixed 3° left no pixel (then the fit fell back to all).
 NOISE_ANGLE_FACTOR = 1.5
 SPREAD_FACTOR = 1.5
+CENSORED_NOISE_FACTOR = 3.0  # a saturated pixel's allowed angle to its material, in noise angles
 
 
 def features_of(cube: np.ndarray, features: Features = "unit") -> np.ndarray:
@@ -259,6 +262,16 @@ def cored_groups(comp: np.ndarray, fg: np.ndarray, n_groups: int, min_core: floa
     return keep
 
 
+def ranked(labels: np.ndarray) -> np.ndarray:
+    """``labels`` renumbered 1..n by decreasing pixel count (ties by the old id); 0 stays 0."""
+    counts = np.bincount(labels.ravel())
+    ids = np.flatnonzero(counts[1:]) + 1
+    order = ids[np.argsort(-counts[ids], kind="stable")]
+    lut = np.zeros(counts.size, dtype=np.int32)
+    lut[order] = np.arange(1, order.size + 1, dtype=np.int32)
+    return lut[labels]
+
+
 def majority_in_superpixels(labels: np.ndarray, superpixels: np.ndarray) -> np.ndarray:
     """Replace each label by the most frequent label of its superpixel (0 in ``superpixels`` = untouched)."""
     out = labels.copy()
@@ -313,6 +326,8 @@ class SpectralSegmenter:
         denoise: Denoise = "guided",
         fit_stride: int = 2,
         min_core_fraction: float = 6e-4,
+        censored: bool = True,
+        censored_min_share: float = 0.05,
     ) -> None:
         if not 1 <= min_materials <= max_materials:
             raise AnalysisInputError(
@@ -381,6 +396,10 @@ class SpectralSegmenter:
             problem = f"must lie in [0, 1) (0 = no interior test), got {min_core_fraction}"
             raise AnalysisInputError("min_core_fraction", problem)
         self.min_core_fraction = float(min_core_fraction)
+        if not 0 <= censored_min_share < 1:
+            raise AnalysisInputError("censored_min_share", f"must lie in [0, 1), got {censored_min_share}")
+        self.censored = bool(censored)
+        self.censored_min_share = float(censored_min_share)
         self.pool_target_deg = float(pool_target_deg)
         self.merge_noise = float(merge_noise)
         self.robust = bool(robust)
@@ -450,6 +469,33 @@ class SpectralSegmenter:
             z = gm.predict_proba(sample).astype(np.float64)
             value -= 2.0 * float(np.sum(xlogy(z, z)))
         return value
+
+    def _select(self, sample: np.ndarray, *, given: bool = True
+                ) -> tuple[GaussianMixture | BayesianGaussianMixture, dict[int, float]]:
+        """The mixture for ``sample``: the given count (``n_materials``, unless ``given`` is false),
+        the variational fit, or the lowest ``criterion`` over 1..``max_materials`` components
+        (stopping after ``bic_patience`` counts without improvement); returns it with the criterion
+        per count tried."""
+        upper = min(self.max_materials, max(1, sample.shape[0] - 1))
+        bic: dict[int, float] = {}
+        best: GaussianMixture | BayesianGaussianMixture | None = None
+        if given and self.n_materials is not None:  # the count is given (e.g. the catalog's): no selection
+            best = self._fit(sample, min(self.n_materials, upper))
+        elif self.criterion == "bayes":
+            best = self._fit_bayes(sample, upper)
+        else:
+            best_n, stale = 0, 0
+            for n in range(min(self.min_materials, upper), upper + 1):
+                gm = self._fit(sample, n)
+                bic[n] = self._score(gm, sample)
+                if best is None or bic[n] < bic[best_n]:
+                    best, best_n, stale = gm, n, 0
+                else:
+                    stale += 1
+                    if stale >= self.bic_patience:
+                        break
+        assert best is not None
+        return best, bic
 
     def _groups(self, gm: GaussianMixture | BayesianGaussianMixture, n_spectral: int,
                 limit: np.ndarray | None = None) -> np.ndarray:
@@ -540,6 +586,48 @@ class SpectralSegmenter:
         pair = self.merge_noise * np.sqrt(theta[:, None] ** 2 + theta[None, :] ** 2)
         return np.maximum(pair, self.merge_angle_deg)
 
+    def _censored(self, arr: np.ndarray, labels: np.ndarray, fg: np.ndarray, rel: Reliability,
+                  noise_deg: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Saturated pixels that no fitted material explains as censored data (``segmenters.censored``)
+        get a mixture of their own, when they have an interior of at least ``censored_min_share`` of
+        the foreground; returns the labels (renumbered by size) and those pixels, or the labels
+        unchanged and None."""
+        clipped = rel.clipped[rel.bands]
+        sat = rel.saturated & fg
+        good = fg & ~rel.unreliable
+        n = int(labels.max())
+        if n == 0 or not good.any():
+            return labels, None
+        means = np.stack([arr[:, (labels == k) & good].mean(axis=1) if np.any((labels == k) & good)
+                          else np.zeros(arr.shape[0]) for k in range(1, n + 1)])
+        # a saturated pixel may lie as far from its material as noise puts two pixels of one
+        tau = self.homogeneity_deg
+        if np.isfinite(noise_deg):
+            tau = min(max(tau, CENSORED_NOISE_FACTOR * noise_deg), 45.0)
+        x, observed = arr[:, sat].T, ~clipped[:, sat].T
+        un = np.zeros_like(fg)
+        un[sat] = ~explained(x, observed, means, plateau_levels(arr, clipped), tau_deg=tau)
+        core = un & ndimage.binary_erosion(un)
+        if int(core.sum()) < max(MIN_FIT_PIXELS, self.censored_min_share * int(fg.sum())):
+            return labels, None
+        _, _, feats = self._features(arr)
+        sample = feats[:, core].T
+        if sample.shape[0] > self.sample_size:
+            rng = np.random.default_rng(self.seed)
+            sample = sample[rng.choice(sample.shape[0], self.sample_size, replace=False)]
+        gm, _ = self._select(sample, given=False)  # a count given for the build is not theirs
+        groups = self._groups(gm, arr.shape[0])
+        resp = gm.predict_proba(feats[:, un].T) @ groups
+        comp = resp.argmax(axis=1)
+        if self.min_core_fraction > 0:
+            keep = cored_groups(comp, un, resp.shape[1], self.min_core_fraction * int(fg.sum()))
+            resp = resp[:, keep]
+            comp = resp.argmax(axis=1)
+        comp = merge_censored(arr[:, un].T, ~clipped[:, un].T, comp, resp.shape[1], tau)
+        out = labels.copy()
+        out[un] = n + 1 + comp
+        return ranked(out), un
+
     def _features(self, arr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit spectra, energy and the clustering features: the spectra plus, when weighted, log
         energy (the albedo cue: achromatic materials differ mostly in brightness)."""
@@ -578,8 +666,10 @@ class SpectralSegmenter:
         unit, energy, feats = self._features(arr)
         pooled: np.ndarray | None = None  # the fit's samples when the cube is pooled into superpixels
         per, noise_deg = 1, float("nan")
+        raw_noise_deg = noise_deg
         if rel is not None:
             noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
+            raw_noise_deg = noise_deg  # saturated pixels are never filtered: their noise stays this
             if self.pool_target_deg > 0:
                 per = pool_size(noise_deg, self.pool_target_deg)
         stride, averaged = 1, 1
@@ -625,25 +715,7 @@ class SpectralSegmenter:
         sample = pool
         if pool.shape[0] > self.sample_size:
             sample = pool[rng.choice(pool.shape[0], self.sample_size, replace=False)]
-        upper = min(self.max_materials, max(1, sample.shape[0] - 1))
-        bic: dict[int, float] = {}
-        best: GaussianMixture | BayesianGaussianMixture | None = None
-        if self.n_materials is not None:  # the count is given (e.g. from the catalog): no selection
-            best = self._fit(sample, min(self.n_materials, upper))
-        elif self.criterion == "bayes":
-            best = self._fit_bayes(sample, upper)
-        else:
-            best_n, stale = 0, 0
-            for n in range(min(self.min_materials, upper), upper + 1):
-                gm = self._fit(sample, n)
-                bic[n] = self._score(gm, sample)
-                if best is None or bic[n] < bic[best_n]:
-                    best, best_n, stale = gm, n, 0
-                else:
-                    stale += 1
-                    if stale >= self.bic_patience:
-                        break
-        assert best is not None
+        best, bic = self._select(sample)
         limit = None
         if rel is not None and self.merge_noise > 0 and np.isfinite(noise_deg):
             limit = self._merge_limit(best, sample, noise_deg / np.sqrt(2.0 * per), unit.shape[0])
@@ -661,8 +733,12 @@ class SpectralSegmenter:
         rank = np.empty(n_groups, dtype=np.int32)
         rank[order] = np.arange(1, n_groups + 1, dtype=np.int32)
         labels[fg] = rank[comp]
+        censored: np.ndarray | None = None
+        if rel is not None and self.censored and rel.saturated.any():
+            labels, censored = self._censored(arr, labels, fg, rel, raw_noise_deg)
         if rel is not None and rel.saturated.any():
-            labels = relabel_saturated(labels, arr, rel.clipped[rel.bands], rel.saturated)
+            rest = rel.saturated if censored is None else rel.saturated & ~censored
+            labels = relabel_saturated(labels, arr, rel.clipped[rel.bands], rest)
         if self.smooth:
             shown = np.zeros_like(unit)
             shown[:, fg] = unit[:, fg]
@@ -673,4 +749,4 @@ class SpectralSegmenter:
         if rel is None:
             return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)
         return SpectralSegmentation(labels, n_used, threshold, bic, n_fg, rel.unreliable,
-                                    tuple(int(b) for b in rel.bands), fit, averaged)
+                                    tuple(int(b) for b in rel.bands), fit, averaged, censored)
