@@ -3,8 +3,8 @@
 Each cell renders the simulator's frames (``analysis.study.simframes.simulated_frames``) of
 3 satellites × 3 builds at two views (E1, azimuths 30° and 200°) under one condition and segments them with
 three variants of the segmenter (``VARIANTS``): ``before`` (``robust=False``, issue 15),
-``pass2`` (the second pass of issue 23: SLICO superpixel pooling where the SNR is low) and
-``after`` (the default: edge-preserving guided-filter denoising there instead).
+``uncensored`` (the default without the censored fit of saturated pixels, ``censored=False``:
+the fourth pass of issue 23 with the fifth pass's plateau finder) and ``after`` (the default).
 Per cell and variant: the share of frames with K within ±1 of the visible materials, mean
 K − true, mean macro Dice and its difference to the reference cell (peak 60 %, weak light, 1024²
 sensor: 256² cubes, the size of the issue-15 model-selection study; at 128² cubes the
@@ -55,7 +55,7 @@ GOAL_CELLS = ("peak-5%", "peak-10%", "peak-30%", "peak-60%", "peak-100%", "peak-
 # variant -> SpectralSegmenter keywords
 VARIANTS: dict[str, dict[str, Any]] = {
     "before": {"robust": False},
-    "pass2": {"denoise": "slic"},
+    "uncensored": {"censored": False},
     "after": {},
 }
 
@@ -113,13 +113,14 @@ def summarise(cells: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
 
 
 def markdown(summary: list[dict[str, Any]]) -> str:
-    lines = ["| cell | K ±1 before / pass 2 / after | Dice before / pass 2 / after |"
-             " ΔDice vs 60 % pass 2 / after | supervised ΔDice QDA / centroid | CPU s/frame pass 2 / after |"
+    lines = ["| cell | K ±1 before / uncensored / after | Dice before / uncensored / after |"
+             " ΔDice vs 60 % uncensored / after | supervised ΔDice QDA / centroid |"
+             " CPU s/frame uncensored / after |"
              " K − true per frame after |",
              "|---|---|---|---|---|---|---|"]
     by = {(s["cell"], s["variant"]): s for s in summary}
     for cell in dict.fromkeys(s["cell"] for s in summary):
-        b, p, a = by[(cell, "before")], by[(cell, "pass2")], by[(cell, "after")]
+        b, p, a = by[(cell, "before")], by[(cell, "uncensored")], by[(cell, "after")]
         lines.append(f"| {cell} | {b['within_1']:.0%} / {p['within_1']:.0%} / {a['within_1']:.0%} | "
                      f"{b['dice']:.3f} / {p['dice']:.3f} / {a['dice']:.3f} | {p['dice_delta']:+.3f} / "
                      f"{a['dice_delta']:+.3f} | {a['bound_qda_delta']:+.3f} / "
@@ -152,8 +153,8 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     x = np.arange(len(cells))
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 7), sharex=True)
     for off, v, label, colour in ((-0.27, "before", "before (robust=False)", "#cccccc"),
-                                  (0.0, "pass2", "second pass (pooling)", "#9ecae1"),
-                                  (0.27, "after", "now (guided filter, interior test)", "#1f77b4")):
+                                  (0.0, "uncensored", "without the censored fit", "#9ecae1"),
+                                  (0.27, "after", "now (censored fit of saturated pixels)", "#1f77b4")):
         ax1.bar(x + off, [by[(c, v)]["within_1"] for c in cells], 0.27, label=label, color=colour)
         ax2.bar(x + off, [by[(c, v)]["dice_delta"] for c in cells], 0.27, label=label, color=colour)
     goal = [i for i, c in enumerate(cells) if c in GOAL_CELLS]
