@@ -69,8 +69,9 @@ def test_explained_needs_the_shape_and_the_clip_reached():
     ])
     seen = np.array([[True, True, False, True]] * 3)
     assert explained(x, seen, m, levels, tau_deg=3.0).tolist() == [True, False, False]
-    assert plateau_levels(np.array([[[5.0, 9.0]], [[1.0, 2.0]]]), np.array([[[False, True]], [[False, False]]])
-                          ).tolist() == [9.0, np.inf]
+    values = np.array([[[5.0, 9.0]], [[1.0, 2.0]]])
+    on_plateau = np.array([[[False, True]], [[False, False]]])
+    assert plateau_levels(values, on_plateau).tolist() == [9.0, np.inf]
 
 
 def test_groups_of_one_material_at_two_clip_patterns_merge():

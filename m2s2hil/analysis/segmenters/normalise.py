@@ -6,10 +6,11 @@ carry a shape (issue 23, docs/evaluation.md "Robustness"):
 
 - **clipped** bands: a band at the sensor's full scale records only a lower bound, and a pixel
   clipped in some bands has a flattened spectrum (over-exposure split one material into several
-  "flat-topped" clusters). Without the full scale, a clipped band shows as a *plateau*: many
-  pixels within ``PLATEAU_REL_TOL`` of the band's maximum (dark subtraction leaves the clipped
-  value at full scale − dark, the same to a few DN) that holds more pixels than the three times
-  wider bin below it (a natural tail falls towards its maximum). A processor's own mask (``saturated``,
+  "flat-topped" clusters). Without the full scale, a clipped band shows as a *plateau*: the
+  fullest of the band's top bins (``PLATEAU_REL_TOL`` wide), with the bins below it that are still
+  part of the spike (dark subtraction leaves each clipped value at full scale − its pixel's dark,
+  a few DN apart), holding more pixels than the three times wider bin below (a natural tail
+  falls towards its maximum). A processor's own mask (``saturated``,
   ``ProcessedFrame.saturated_mask``) can be given instead or as well.
 - **near-black** pixels: band energy under ``snr_min`` × the noise floor. Their unit spectrum is
   mostly noise (its angular noise is about 1/SNR rad, 6° at SNR 10), and at low exposure they

@@ -22,7 +22,12 @@ materials", has the comparison that chose them):
    *unreliable*: out of the fit and of model selection, then labelled — near-black pixels by the
    mixture's posterior like any other, saturated ones by the nearest material mean in spectral
    angle over the bands that did not clip (too few: the nearest reliable pixel's material);
-   ``SpectralSegmentation.unreliable`` says which. The homogeneity angle of step 3 becomes at
+   ``SpectralSegmentation.unreliable`` says which. Saturated pixels that no fitted material
+   explains as censored data (shape on the bands that held, clip reached on those that did not;
+   ``segmenters.censored``) and that have an interior of ≥ ``censored_min_share`` (5 %) of the
+   foreground get a mixture of their own (``censored=True``, default since the fifth pass of
+   issue 23: a material clipped on every pixel otherwise joined the dim one, K = 1 at 50 ms in
+   strong light); ``SpectralSegmentation.censored`` says which. The homogeneity angle of step 3 becomes at
    least 1.5 × the cube's median neighbour angle, so a dim cube keeps fit pixels (with a fixed 3°
    none passed at 4 % peak and the fit fell back to every pixel, which over-splits). ``white``
    (per band) divides the cube by the white reference first. ``robust=False``: the issue-15
@@ -80,7 +85,8 @@ is pure overhead; on a busy 2-core machine it made the BIC sweep ten times slowe
 
 Known limits (robustness: docs/evaluation.md, "Robustness to exposure, clipping and light"):
 below ~10 % peak the 8–10-material builds still lose materials (denoising recovers some), above
-~150 % clipping still splits some, and under the spotlight faces in shadow fall to the backdrop
+~150 % clipping still splits some (at 200 % the censored fit takes a glossy material's highlights
+for materials of their own), and under the spotlight faces in shadow fall to the backdrop
 (there even a classifier told the truth, ``metrics.bounds``, loses 0.06–0.11 Dice per pixel);
 the brightness coordinate separates dark grey from silver, but silver and cold white (close in
 both shape and brightness) can still merge; materials that cover only a few pixels have no
