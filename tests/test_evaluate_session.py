@@ -180,6 +180,23 @@ def test_cli_rejects_bad_input(session, tmp_path):
     assert res.exit_code == 2 and "bogus" in res.stderr, res.output
 
 
+def test_cli_segmenter_options(session, tmp_path):
+    out = tmp_path / "ev"
+    res = run_cli("evaluate", session, "--out", out, "--workers", "0", "--limit", "1", "--mtc", "none",
+                  "--option", "censored=false", "-O", "max_materials=6")
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["options"]["segmenter_options"] == {"censored": False, "max_materials": 6}
+    # refused before any image is read, with the option named
+    for args, says in ((("--option", "nope=1"), "nope"), (("--option", "censored"), "KEY=VALUE"),
+                       (("-O", "censored_min_share=2"), "censored_min_share"),
+                       (("-O", "seed=1", "-O", "seed=2"), "twice")):
+        res = run_cli("evaluate", session, "--out", tmp_path / "x", "--workers", "0", *args)
+        error = [line for line in res.stderr.splitlines() if line.startswith("error: ")]
+        assert res.exit_code == 2 and len(error) == 1 and says in error[0], res.output
+        assert not (tmp_path / "x").exists()
+
+
 def test_exported_dataset_without_labels_gets_mtc_only(tmp_path):
     # no darks: the export reads raws with frame_files.decode_tiff (see docs/evaluation.md)
     folder = simulate_session(

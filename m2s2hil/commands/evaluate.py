@@ -13,7 +13,9 @@ cluster with ``--scheduler tcp://host:8786``, or in this process with ``--worker
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -35,6 +37,11 @@ def evaluate_cmd(
     ),
     also: list[str] = typer.Option([], "--also", help="more segmenters to time and score (repeatable)"),
     checkpoint: Path | None = typer.Option(None, "--checkpoint", help="SAM checkpoint (for --segmenter sam)"),
+    option: list[str] = typer.Option(
+        [], "--option", "-O",
+        help="segmenter option KEY=VALUE for every segmenter run (repeatable; VALUE as JSON: "
+             "censored=false, robust=false, n_superpixels=500), e.g. to evaluate without a step",
+    ),
     scheduler: str | None = typer.Option(
         None, "--scheduler", help="existing Dask scheduler, tcp://host:port"
     ),
@@ -65,7 +72,7 @@ def evaluate_cmd(
         from m2s2hil.config import check_demosaic_method
 
         check_demosaic_method(reprocess, lambda problem: UsageError(f"--reprocess: {problem}"))
-    seg_opts: dict = {}
+    seg_opts = parse_options(option)
     if checkpoint is not None:
         seg_opts["checkpoint"] = str(checkpoint)
     options = EvalOptions(
@@ -113,6 +120,24 @@ def evaluate_cmd(
         console.print(f"[yellow]{len(result.errors)} image(s) failed; see {out / 'summary.json'}[/yellow]")
     typer.echo((out / "table2.md").read_text())
     typer.echo(f"wrote {', '.join(sorted(written))} to {out} in {result.elapsed_s:.1f} s")
+
+
+def parse_options(items: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings as segmenter options: VALUE read as JSON where it is JSON (``false``,
+    ``0.5``, ``[1, 2]``), else as a string; a malformed item is a ``UsageError`` naming it."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or not key.isidentifier():
+            raise UsageError(f"--option {item!r}: expected KEY=VALUE with KEY a parameter name")
+        if key in out:
+            raise UsageError(f"--option {key!r} is given twice")
+        try:
+            out[key] = json.loads(raw)
+        except ValueError:
+            out[key] = raw
+    return out
 
 
 def report_cmd(
