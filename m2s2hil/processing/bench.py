@@ -12,16 +12,18 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from m2s2hil.processing.chain import FrameProcessor
-from m2s2hil.processing.dark import build_master_dark, subtract_dark
+from m2s2hil.processing.dark import MasterDark, build_master_dark, subtract_dark
 from m2s2hil.processing.demosaic import METHODS, check_method, get_demosaicer
 from m2s2hil.processing.groundtruth import Scene, mosaic_of
 from m2s2hil.processing.image_quality import Quality, evaluate
 from m2s2hil.processing.mosaic import MosaicLayout, cell_mean
+from m2s2hil.processing.ppid import PPIDDemosaicer
 
 
 @dataclass
@@ -58,7 +60,7 @@ def time_call(fn: Callable[[], object], *, frames: int, rounds: int) -> Timing:
     return Timing(ms_best=min(medians), ms_median=float(np.median(every)) * 1e3, rounds=medians)
 
 
-def timing_frame(camera, scene: Scene | None = None, seed: int = 0) -> tuple[np.ndarray, object]:
+def timing_frame(camera, scene: Scene | None = None, seed: int = 0) -> tuple[np.ndarray, MasterDark]:
     """A full-size raw frame (a scene tiled to the sensor size, plus a dark level) and its master dark."""
     layout = MosaicLayout.from_camera(camera)
     rng = np.random.default_rng(seed)
@@ -83,9 +85,9 @@ def measure_speed(
     for m in methods:
         check_method(m)
         fp = FrameProcessor(m, camera, dark=dark)
-        pipe = time_call(lambda fp=fp: fp.process(raw), frames=frames, rounds=rounds)
+        pipe = time_call(partial(fp.process, raw), frames=frames, rounds=rounds)
         corrected, _ = subtract_dark(raw, dark, full_scale=camera.full_scale)
-        demo = time_call(lambda fp=fp, c=corrected: fp.demosaicer.process(c), frames=frames, rounds=rounds)
+        demo = time_call(partial(fp.demosaicer.process, corrected), frames=frames, rounds=rounds)
         out[m] = (pipe, demo)
     return out
 
@@ -198,6 +200,7 @@ def demosaic_stability_study(
         d = get_demosaicer(m, layout, sat_mos.shape)
         d_ideal = get_demosaicer(m, layout, sat_mos.shape)
         if label.endswith("fixed gains"):
+            assert isinstance(d, PPIDDemosaicer) and isinstance(d_ideal, PPIDDemosaicer)
             d.fix_gains(clean_levels)
             d_ideal.fix_gains(clean_levels)
         est = d.process(sat_mos).copy()

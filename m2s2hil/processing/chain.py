@@ -96,8 +96,9 @@ class FrameProcessor:
             n = self.layout.n
             self._qc_rows = np.empty((-(-self.shape[0] // n // QC_ROW_STEP), n, self.shape[1]), np.uint16)
         self._check_every = max(0, int(check_phase_every))
-        if threads is not None and not 1 <= threads <= numba.config.NUMBA_NUM_THREADS:
-            raise ProcessingError(f"threads must be 1..{numba.config.NUMBA_NUM_THREADS}, got {threads}")
+        most = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]  # set when numba loads
+        if threads is not None and not 1 <= threads <= most:
+            raise ProcessingError(f"threads must be 1..{most}, got {threads}")
         self.threads = threads
         self._count = 0
         self.info = {

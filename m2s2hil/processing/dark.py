@@ -62,7 +62,7 @@ class MasterDark:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.data.shape  # type: ignore[return-value]
+        return self.data.shape
 
     def __post_init__(self) -> None:
         # The pixels are hashed once and the digest goes into every frame's metadata, so they
@@ -73,7 +73,7 @@ class MasterDark:
 
     @cached_property
     def _digest(self) -> str:
-        return hashlib.sha256(np.ascontiguousarray(self.data)).hexdigest()
+        return hashlib.sha256(np.ascontiguousarray(self.data).data).hexdigest()
 
     def sha256(self) -> str:
         return self._digest

@@ -111,4 +111,4 @@ def check_method(name: str) -> str:
 def get_demosaicer(name: str, layout, shape: tuple[int, int]) -> Demosaicer:
     """The demosaicer called ``name`` for this layout and frame shape (output preallocated)."""
     check_method(name)
-    return _registry()[name](as_layout(layout), tuple(shape))
+    return _registry()[name](as_layout(layout), (int(shape[0]), int(shape[1])))

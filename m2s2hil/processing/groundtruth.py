@@ -289,7 +289,7 @@ def mosaic_of(
     seed: int = 0,
 ) -> np.ndarray:
     """Sample a radiance cube through the MSFA, optionally with shot + read noise, then quantise (uint16)."""
-    m = sample_cube(scene_cube, layout, offset=offset, dtype=None).astype(np.float64)
+    m: np.ndarray = sample_cube(scene_cube, layout, offset=offset, dtype=None).astype(np.float64)
     rng = np.random.default_rng(seed)
     if gain_dn_per_e:
         m = rng.poisson(np.clip(m, 0, None) / gain_dn_per_e) * gain_dn_per_e

@@ -186,7 +186,7 @@ def wb_kernel(src, pr, pc, band_start, band_count, fyt, wrows, add, scale, neare
                             for x in range(w):
                                 o[x] = sc * (o[x] + ad[x])
                     stream_copy(out[b, y], o)
-        store_fence()
+        store_fence()  # type: ignore[call-arg]  # a numba intrinsic
 
 
 # --- super-pixel ------------------------------------------------------------------------------
@@ -369,7 +369,7 @@ def _dark_superpixel_span(raw, dark, has_dark, never, fs, full_scale, pr, pc, ba
                 inv = np.float32(1.0 / cnt)
                 for cx in range(kw):
                     o[cx] *= inv
-    store_fence()
+    store_fence()  # type: ignore[call-arg]  # a numba intrinsic
     return n_sat
 
 
@@ -382,7 +382,7 @@ def kth_smallest_cells_u16(mosaic, n, row_step, step, k):
     h, w = mosaic.shape
     kh = h // n
     kw = w // n
-    mx = 0
+    mx = np.int64(0)
     for cy in range(0, kh, row_step):
         for py in range(n):
             r = mosaic[cy * n + py]
@@ -397,11 +397,11 @@ def kth_smallest_cells_u16(mosaic, n, row_step, step, k):
             for cx in range(0, kw, step):
                 for j in range(n):
                     hist[r[cx * n + j]] += 1
-    seen = 0
-    for v in range(mx + 1):
-        seen += hist[v]
+    seen = np.int64(0)
+    for level in range(mx + 1):
+        seen += hist[level]
         if seen > k:
-            return v
+            return level
     return mx
 
 
@@ -826,7 +826,7 @@ def ppid_kernel(src, gain_rows, taps, pr, pc, band_start, band_count, fyt, wrows
             _hinterp_all(df, pr, pc, n, rows, k % 3, tmp)
             if k - 1 >= cy_lo:  # the sample rows below cell row k − 1 are in: write it
                 _wb_cell_row(rows, pr, band_start, band_count, fyt, wrows, scale, pp, k - 1, n, orow, out)
-        store_fence()
+        store_fence()  # type: ignore[call-arg]  # a numba intrinsic
 
 
 # --- calibration: crosstalk and white reference -----------------------------------------------

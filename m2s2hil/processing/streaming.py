@@ -88,7 +88,7 @@ def stream_copy(dst, src):
         dst[x] = src[x]
     x = head
     while x + LANES <= w:
-        _stream16(dst, x, src, x)
+        _stream16(dst, x, src, x)  # type: ignore[call-arg]  # a numba intrinsic: numba supplies its context
         x += LANES
     for k in range(x, w):
         dst[k] = src[k]

@@ -39,7 +39,7 @@ def to_pil_image(pic: Any) -> Any:
 def resize(img: Any, size: Any) -> Any:
     from PIL import Image
 
-    h, w = (int(size), int(size)) if np.isscalar(size) else (int(size[0]), int(size[1]))
+    h, w = (int(size), int(size)) if np.ndim(size) == 0 else (int(size[0]), int(size[1]))
     return img.resize((w, h), Image.Resampling.BILINEAR)
 
 
