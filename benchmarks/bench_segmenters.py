@@ -28,9 +28,11 @@ from typing import Any
 import numpy as np
 
 DEFAULT_CACHE = Path("bench-out/segmenter-frames")  # one folder per sensor size below it
-# the spectral segmenter's defaults before issue 15
+# the spectral segmenter's defaults before issue 15; every issue-15 candidate is built without the
+# reliability masks issue 23 made the default (robust=False), so the rows measure what they name
 OLD_DEFAULT: dict[str, Any] = {"fit_pixels": "all", "foreground": "otsu", "brightness_weight": 0.0,
-                               "merge_angle_deg": 1.0}
+                               "merge_angle_deg": 1.0, "robust": False}
+ISSUE_15: dict[str, Any] = {"robust": False}  # issue 15's default
 
 
 def cache_frames(folder: Path, size: int, azimuths: tuple[float, ...] = (30.0, 200.0)) -> int:
@@ -71,7 +73,7 @@ def candidates() -> dict[str, Callable[[dict[str, Any]], Any]]:
 
     def catalog_k(f: dict[str, Any]) -> Any:
         satellite, build = f["satellite"], f["build"]
-        return SpectralSegmenter.for_build(satellite, build).segment(f["cube"])
+        return SpectralSegmenter.for_build(satellite, build, robust=False).segment(f["cube"])
 
     old = OLD_DEFAULT
     homog = {**old, "fit_pixels": "homogeneous", "noise_scaled": False}
@@ -85,10 +87,12 @@ def candidates() -> dict[str, Callable[[dict[str, Any]], Any]]:
         "BIC, homogeneous pixels (3°)": spectral(**homog),
         "+ noise-scaled homogeneity": spectral(**{**homog, "noise_scaled": True}),
         "+ backdrop foreground": spectral(**{**homog, "noise_scaled": True, "foreground": "backdrop"}),
-        "+ brightness feature, merge 1.5° (new default)": spectral(),
-        "new default with ICL": spectral(criterion="icl"),
-        "new default with Bayesian GMM": spectral(criterion="bayes"),
+        "+ brightness feature, merge 1.5° (new default)": spectral(**ISSUE_15),
+        "new default with ICL": spectral(**ISSUE_15, criterion="icl"),
+        "new default with Bayesian GMM": spectral(**ISSUE_15, criterion="bayes"),
         "catalog K (told the build; not a selector)": catalog_k,
+        # issue 23: reliability masks, guided-filter denoising, interior test, censored fit
+        "today's default (issue 23)": spectral(),
     }
 
 
