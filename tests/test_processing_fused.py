@@ -12,6 +12,7 @@ from m2s2hil.processing.errors import FrameShapeError
 from m2s2hil.processing.groundtruth import mosaic_of, synthetic_scene
 from m2s2hil.processing.mosaic import MosaicLayout
 from m2s2hil.processing.stability import (
+    LOW_SNR,
     cell_mask,
     check_phase,
     low_light_warning,
@@ -124,6 +125,23 @@ def test_low_light_percentile_from_histogram_is_exact(seed):
     mosaic = rng.integers(0, 12 + 40 * seed, (48, 64), dtype=np.uint16)
     got = low_light_warning(mosaic, 100.0, LAYOUT.n)
     assert got is not None and got == low_light_warning(mosaic.astype(np.float32), 100.0, LAYOUT.n)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_low_light_fast_path_decides_as_the_percentile(seed):
+    """uint16 mosaics first count the samples below the bound and compute the percentile only to
+    warn: the same verdict and text as np.partition on either side of the bound and on it."""
+    rng = np.random.default_rng(seed)
+    mosaic = rng.integers(0, 300 + 200 * seed, (48, 64), dtype=np.uint16)
+    sample = mosaic.reshape(12, 4, 16, 4)[::8, :, ::8, :].ravel()
+    p95 = float(np.partition(sample, int(0.95 * (sample.size - 1)))[int(0.95 * (sample.size - 1))])
+    verdicts = []
+    for factor in (0.9, 0.999, 1.0, 1.001, 1.1):
+        read_noise = p95 / LOW_SNR * factor
+        got = low_light_warning(mosaic, read_noise, LAYOUT.n)
+        assert got == low_light_warning(mosaic.astype(np.float32), read_noise, LAYOUT.n)
+        verdicts.append(got is not None)
+    assert verdicts == [False, False, False, True, True]  # at the bound itself: SNR = 5, no warning
 
 
 @pytest.mark.parametrize(

@@ -406,6 +406,26 @@ def kth_smallest_cells_u16(mosaic, n, row_step, step, k):
 
 
 @njit(cache=True, error_model="numpy")
+def count_below_cells_u16(mosaic, n, row_step, step, threshold):
+    """How many of the cells ``kth_smallest_cells_u16`` samples are below ``threshold``: one pass,
+    no histogram. The low-light check needs only whether the 95th percentile reaches its bound,
+    which is whether at most k of the samples fall below it; the percentile itself is computed
+    only for the warning's text."""
+    h, w = mosaic.shape
+    kh = h // n
+    kw = w // n
+    below = 0
+    for cy in range(0, kh, row_step):
+        for py in range(n):
+            r = mosaic[cy * n + py]
+            for cx in range(0, kw, step):
+                for j in range(n):
+                    if r[cx * n + j] < threshold:
+                        below += 1
+    return below
+
+
+@njit(cache=True, error_model="numpy")
 def position_sums_u16(mosaic, n, step):
     """(n, n) sums of x and of x² of each MSFA position over every ``step``-th cell row (all columns),
     in int64: exact, so equal to any float64 summation of the same integers. Accumulated per

@@ -176,6 +176,11 @@ def low_light_warning(
     if mosaic.dtype == np.uint16:  # the k-th smallest from a histogram, read in place: exact
         from m2s2hil.processing import kernels
 
+        # the usual frame is bright enough: at most k samples below the bound (a hair above it, so
+        # float rounding of signal / read noise cannot disagree) means the k-th smallest reaches it
+        bound = LOW_SNR * read_noise_dn * (1.0 + 1e-9)
+        if kernels.count_below_cells_u16(mosaic, n, rs, step, bound) <= k:
+            return None
         signal = float(kernels.kth_smallest_cells_u16(mosaic, n, rs, step, k))
     else:
         signal = float(np.partition(sample.ravel(), k)[k])
