@@ -97,7 +97,7 @@ def clipped_bands(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
     The plateau is found at the most populated bin of the band's top ``PLATEAU_SEARCH`` bins, not
     at the band's maximum: dark subtraction leaves every clipped pixel at full scale minus its own
     dark value, so the plateau is a few DN wide, and a few pixels with a low dark value sit above
-    it. Anchored at the maximum, a tolerance of a few DN missed half the plateau (Hubble B1 at
+    it. Anchored at the maximum, a tolerance of a few DN missed a fifth of it (Hubble B1 at
     200 % peak: 2 500 of 13 000 clipped values of a band, and whole bands whose maximum was 5 DN
     above the plateau's centre).
     """
