@@ -51,12 +51,20 @@ def test_a_plateau_spread_by_the_dark_is_found_whole():
     assert old[truth & fg[None]].mean() < 0.9
 
 
-def test_a_small_bright_part_is_not_a_plateau():
+def test_a_small_bright_part_is_not_a_plateau(monkeypatch):
+    # ISS B3 at 60 % peak: 34 pixels of a bright part above a gap, no clipping, binned (0.4 % of the
+    # maximum) fullest three bins below the top; a search over four top bins took them for a plateau
     cube, _ = exposed_scene(0.6, (64, 64), 3)
     fg, _ = foreground_mask(cube, "backdrop")
-    patch = cube[4, 20:26, 20:26]  # 36 pixels spread over 25 DN, 50 DN above the rest: no clipping
-    patch[:] = cube.max() + 50 + np.linspace(0, 25, patch.size).reshape(patch.shape)
+    counts = [4, 2, 7, 8, 5, 7, 1]  # bins from low to the band's maximum
+    top = float(cube[4].max()) + 60.0
+    delta = PLATEAU_REL_TOL * top
+    values = [top - delta * (len(counts) - 1 - i) - delta / 2 for i, c in enumerate(counts) for _ in range(c)]
+    values[-1] = top
+    cube[4].ravel()[: len(values)] = values
     assert not clipped_bands(cube, fg)[4].any()
+    monkeypatch.setattr("m2s2hil.analysis.segmenters.normalise.PLATEAU_SEARCH", 4)
+    assert clipped_bands(cube, fg)[4].any()  # the wider search: the failure this guards against
 
 
 def test_explained_needs_the_shape_and_the_clip_reached():
