@@ -733,12 +733,8 @@ class SpectralSegmenter:
             if not keep.all():
                 groups, resp = groups[:, keep], resp[:, keep]
                 comp = resp.argmax(axis=1)
-        n_groups = groups.shape[1]
-        sizes = np.bincount(comp, minlength=n_groups)
-        order = np.argsort(-sizes, kind="stable")
-        rank = np.empty(n_groups, dtype=np.int32)
-        rank[order] = np.arange(1, n_groups + 1, dtype=np.int32)
-        labels[fg] = rank[comp]
+        labels[fg] = comp + 1
+        labels = ranked(labels)  # ids by decreasing size, ties by component order: reproducible
         censored: np.ndarray | None = None
         if rel is not None and self.censored and rel.saturated.any():
             labels, censored = self._censored(arr, labels, fg, rel, raw_noise_deg)
