@@ -592,12 +592,12 @@ class SpectralSegmenter:
         pair = self.merge_noise * np.sqrt(theta[:, None] ** 2 + theta[None, :] ** 2)
         return np.maximum(pair, self.merge_angle_deg)
 
-    def _censored(self, arr: np.ndarray, labels: np.ndarray, fg: np.ndarray, rel: Reliability,
-                  noise_deg: float) -> tuple[np.ndarray, np.ndarray | None]:
+    def _censored(self, arr: np.ndarray, feats: np.ndarray, labels: np.ndarray, fg: np.ndarray,
+                  rel: Reliability, noise_deg: float) -> tuple[np.ndarray, np.ndarray | None]:
         """Saturated pixels that no fitted material explains as censored data (``segmenters.censored``)
         get a mixture of their own, when they have an interior of at least ``censored_min_share`` of
-        the foreground; returns the labels (renumbered by size) and those pixels, or the labels
-        unchanged and None."""
+        the foreground (``feats``: ``arr``'s clustering features, already computed); returns the
+        labels (renumbered by size) and those pixels, or the labels unchanged and None."""
         clipped = rel.clipped[rel.bands]
         sat = rel.saturated & fg
         good = fg & ~rel.unreliable
@@ -616,7 +616,6 @@ class SpectralSegmenter:
         core = un & ndimage.binary_erosion(un)
         if int(core.sum()) < max(MIN_FIT_PIXELS, self.censored_min_share * int(fg.sum())):
             return labels, None
-        _, _, feats = self._features(arr)
         sample = feats[:, core].T
         if sample.shape[0] > self.sample_size:
             rng = np.random.default_rng(self.seed)
@@ -737,7 +736,7 @@ class SpectralSegmenter:
         labels = ranked(labels)  # ids by decreasing size, ties by component order: reproducible
         censored: np.ndarray | None = None
         if rel is not None and self.censored and rel.saturated.any():
-            labels, censored = self._censored(arr, labels, fg, rel, raw_noise_deg)
+            labels, censored = self._censored(arr, feats, labels, fg, rel, raw_noise_deg)
         if rel is not None and rel.saturated.any():
             rest = rel.saturated if censored is None else rel.saturated & ~censored
             labels = relabel_saturated(labels, arr, rel.clipped[rel.bands], rest)
