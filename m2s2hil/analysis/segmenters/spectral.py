@@ -97,19 +97,19 @@ the simulator's frames (docs/evaluation.md), not on real captures.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from scipy import ndimage
 from scipy.special import xlogy
-from skimage.filters import threshold_otsu
 from skimage.segmentation import slic
 from threadpoolctl import threadpool_limits
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.segmenters.censored import explained, merge_censored, plateau_levels
+from m2s2hil.analysis.segmenters.foreground import ForegroundRule, dim_regions, foreground_mask
 from m2s2hil.analysis.segmenters.normalise import (
     Reliability,
     guided_denoise,
@@ -145,42 +145,6 @@ class SpectralSegmentation:
     fit: np.ndarray | None = None  # bool (H, W): the pixels the mixture was fitted on
     pooled: int = 1  # pixels the cube was averaged over before the fit (filter or superpixel; 1 = none)
     censored: np.ndarray | None = None  # bool (H, W): saturated pixels no material explained, fitted apart
-
-
-ForegroundRule = Literal["noise", "backdrop", "otsu"]
-BACKDROP_MADS = 6.0
-
-
-def foreground_mask(cube: np.ndarray, rule: ForegroundRule = "otsu") -> tuple[np.ndarray, float]:
-    """Foreground on the log band energy of a ``(bands, H, W)`` cube.
-
-    ``"otsu"``: above the Otsu threshold. ``"backdrop"``: above the lower of the Otsu threshold and
-    the backdrop's level + ``BACKDROP_MADS`` robust SDs (median and 1.4826·MAD of the pixels below
-    the Otsu threshold): with a bright object Otsu's cut can fall above a dark material (dark grey
-    filament) and hand it to the background; the backdrop's own spread bounds what noise can reach.
-    Returns the mask and the threshold expressed as band energy (NaN for a constant cube).
-    """
-    energy = np.sqrt(np.einsum("bhw,bhw->hw", cube, cube))
-    top = float(energy.max())
-    if top == float(energy.min()):
-        return np.zeros(energy.shape, dtype=bool), float("nan")
-    eps = 1e-3 * top
-    log_e = np.log(energy + eps)
-    t = float(threshold_otsu(log_e))
-    if rule == "backdrop":
-        t = min(t, _backdrop_bound(log_e[log_e <= t]))
-    elif rule == "noise":
-        # the same bound on the energy itself: the backdrop's spread is its noise (a dark backdrop
-        # is mostly noise, whose log spreads far more than its value), so a face in the
-        # spotlight's shadow a few noise SDs above it is found (in log it fell below 6 MADs)
-        t = min(t, float(np.log(_backdrop_bound(energy[log_e <= t]) + eps)))
-    return log_e > t, float(np.exp(t) - eps)
-
-
-def _backdrop_bound(below: np.ndarray) -> float:
-    """The backdrop's median plus ``BACKDROP_MADS`` robust SDs (1.4826 × MAD) of ``below``."""
-    med = float(np.median(below))
-    return med + BACKDROP_MADS * 1.4826 * float(np.median(np.abs(below - med)))
 
 
 MIN_FIT_PIXELS = 50
@@ -334,6 +298,8 @@ class SpectralSegmenter:
         min_core_fraction: float = 6e-4,
         censored: bool = True,
         censored_min_share: float = 0.05,
+        dark_after_denoise: bool = True,
+        dim_radius: int = 2,
     ) -> None:
         if not 1 <= min_materials <= max_materials:
             raise AnalysisInputError(
@@ -405,6 +371,10 @@ class SpectralSegmenter:
         if not 0 <= censored_min_share < 1:
             raise AnalysisInputError("censored_min_share", f"must lie in [0, 1), got {censored_min_share}")
         self.censored = bool(censored)
+        self.dark_after_denoise = bool(dark_after_denoise)
+        if dim_radius < 0:
+            raise AnalysisInputError("dim_radius", f"must be ≥ 0 (0 = no dim regions), got {dim_radius}")
+        self.dim_radius = int(dim_radius)
         self.censored_min_share = float(censored_min_share)
         self.pool_target_deg = float(pool_target_deg)
         self.merge_noise = float(merge_noise)
@@ -657,6 +627,8 @@ class SpectralSegmenter:
         if self.white is not None:
             arr = normalise_cube(arr, white=self.white)
         fg, threshold = foreground_mask(arr, self.foreground)
+        if self.robust and self.dim_radius > 0:  # regions too dim per pixel, found on window means
+            fg = fg | dim_regions(arr, fg, radius=self.dim_radius)
         labels = np.zeros((h, w), dtype=np.int32)
         n_fg = int(fg.sum())
         if n_fg == 0:
@@ -683,6 +655,13 @@ class SpectralSegmenter:
             arr, radius = guided_denoise(arr, fg & ~rel.saturated, per)
             unit, energy, feats = self._features(arr)
             noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
+            if self.dark_after_denoise and np.isfinite(noise_deg) and noise_deg > 0:
+                # near-black is judged on the cube the fit sees: averaging n pixels divides the noise
+                # by √n, measured here as the fall of the angular noise (a dark material at 5 % peak
+                # was near-black per pixel, out of the fit, and joined its neighbour)
+                gain = max(raw_noise_deg / noise_deg, 1.0)
+                snr = energy / float(np.sqrt(np.sum(rel.noise[rel.bands] ** 2)))
+                rel = replace(rel, dark=(snr * gain < self.snr_min) & fg)
             # filtered neighbours are correlated: fit on a coarser grid (0: one sample per window)
             stride = self.fit_stride or 2 * radius + 1
         elif per > 1 and rel is not None:
