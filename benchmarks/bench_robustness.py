@@ -3,8 +3,9 @@
 Each cell renders the simulator's frames (``analysis.study.simframes.simulated_frames``) of
 3 satellites × 3 builds at two views (E1, azimuths 30° and 200°) under one condition and segments them with
 three variants of the segmenter (``VARIANTS``): ``before`` (``robust=False``, issue 15),
-``uncensored`` (the default without the censored fit of saturated pixels, ``censored=False``:
-the fourth pass of issue 23 with the fifth pass's plateau finder) and ``after`` (the default).
+``fifth`` (the fifth pass of issue 23: the default without the sixth pass's dim regions and
+near-black test on the denoised cube, ``dark_after_denoise=False, dim_radius=0``) and ``after``
+(the default).
 Per cell and variant: the share of frames with K within ±1 of the visible materials, mean
 K − true, mean macro Dice and its difference to the reference cell (peak 60 %, weak light, 1024²
 sensor: 256² cubes, the size of the issue-15 model-selection study; at 128² cubes the
@@ -55,7 +56,7 @@ GOAL_CELLS = ("peak-5%", "peak-10%", "peak-30%", "peak-60%", "peak-100%", "peak-
 # variant -> SpectralSegmenter keywords
 VARIANTS: dict[str, dict[str, Any]] = {
     "before": {"robust": False},
-    "uncensored": {"censored": False},
+    "fifth": {"dark_after_denoise": False, "dim_radius": 0},
     "after": {},
 }
 
@@ -113,14 +114,14 @@ def summarise(cells: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
 
 
 def markdown(summary: list[dict[str, Any]]) -> str:
-    lines = ["| cell | K ±1 before / uncensored / after | Dice before / uncensored / after |"
-             " ΔDice vs 60 % uncensored / after | supervised ΔDice QDA / centroid |"
-             " CPU s/frame uncensored / after |"
+    lines = ["| cell | K ±1 before / fifth pass / after | Dice before / fifth pass / after |"
+             " ΔDice vs 60 % fifth pass / after | supervised ΔDice QDA / centroid |"
+             " CPU s/frame fifth pass / after |"
              " K − true per frame after |",
              "|---|---|---|---|---|---|---|"]
     by = {(s["cell"], s["variant"]): s for s in summary}
     for cell in dict.fromkeys(s["cell"] for s in summary):
-        b, p, a = by[(cell, "before")], by[(cell, "uncensored")], by[(cell, "after")]
+        b, p, a = by[(cell, "before")], by[(cell, "fifth")], by[(cell, "after")]
         lines.append(f"| {cell} | {b['within_1']:.0%} / {p['within_1']:.0%} / {a['within_1']:.0%} | "
                      f"{b['dice']:.3f} / {p['dice']:.3f} / {a['dice']:.3f} | {p['dice_delta']:+.3f} / "
                      f"{a['dice_delta']:+.3f} | {a['bound_qda_delta']:+.3f} / "
@@ -153,8 +154,8 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     x = np.arange(len(cells))
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 7), sharex=True)
     for off, v, label, colour in ((-0.27, "before", "before (robust=False)", "#cccccc"),
-                                  (0.0, "uncensored", "without the censored fit", "#9ecae1"),
-                                  (0.27, "after", "now (censored fit of saturated pixels)", "#1f77b4")):
+                                  (0.0, "fifth", "fifth pass (censored fit of saturated pixels)", "#9ecae1"),
+                                  (0.27, "after", "now (dim regions, near-black after denoising)", "#1f77b4")):
         ax1.bar(x + off, [by[(c, v)]["within_1"] for c in cells], 0.27, label=label, color=colour)
         ax2.bar(x + off, [by[(c, v)]["dice_delta"] for c in cells], 0.27, label=label, color=colour)
     goal = [i for i, c in enumerate(cells) if c in GOAL_CELLS]
