@@ -155,7 +155,7 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 7), sharex=True)
     for off, v, label, colour in ((-0.27, "before", "before (robust=False)", "#cccccc"),
                                   (0.0, "fifth", "fifth pass (censored fit of saturated pixels)", "#9ecae1"),
-                                  (0.27, "after", "now (dim regions, near-black after denoising)", "#1f77b4")):
+                                  (0.27, "after", "now (dim regions, near-black denoised)", "#1f77b4")):
         ax1.bar(x + off, [by[(c, v)]["within_1"] for c in cells], 0.27, label=label, color=colour)
         ax2.bar(x + off, [by[(c, v)]["dice_delta"] for c in cells], 0.27, label=label, color=colour)
     goal = [i for i, c in enumerate(cells) if c in GOAL_CELLS]

@@ -13,6 +13,10 @@ materials", has the comparison that chose them):
    log spreads widely): it finds faces in the spotlight's shadow (Dice +0.02 at 80°) but took in
    dim rim pixels at 5 % peak (−0.02), so it is not the default. A cube
    with constant energy has no foreground and comes back all background.
+   Robust only (``dim_radius`` r, 2; sixth pass of issue 23; ``segmenters.foreground``): regions
+   whose pixels are each within the backdrop's noise but whose (2r + 1)² window means (the
+   foreground left out) stand above the backdrop's join the foreground, after an opening that
+   drops rims of blends (Hubble B2's dark part at 5 % peak: 11 % → 77 % of it found).
 1b. Reliability (``robust=True``, default since issue 23; ``segmenters.normalise``): every band
    stays in the features while ≥ 5 % of the foreground is unclipped in all of them (else the most
    clipped go, one at a time; dropping every band clipped on > 30 % lost six of Voyager B3's
@@ -22,7 +26,9 @@ materials", has the comparison that chose them):
    *unreliable*: out of the fit and of model selection, then labelled — near-black pixels by the
    mixture's posterior like any other, saturated ones by the nearest material mean in spectral
    angle over the bands that did not clip (too few: the nearest reliable pixel's material);
-   ``SpectralSegmentation.unreliable`` says which. Saturated pixels that no fitted material
+   ``SpectralSegmentation.unreliable`` says which. Near-black is judged again on the denoised cube
+   (step 1c; ``dark_after_denoise``): the SNR × the measured fall of the angular noise.
+   Saturated pixels that no fitted material
    explains as censored data (shape on the bands that held, clip reached on those that did not;
    ``segmenters.censored``) and that have an interior of ≥ ``censored_min_share`` (5 %) of the
    foreground get a mixture of their own (``censored=True``, default since the fifth pass of
