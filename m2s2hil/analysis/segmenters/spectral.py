@@ -90,10 +90,12 @@ is pure overhead; on a busy 2-core machine it made the BIC sweep ten times slowe
 (1.65 s vs 0.17 s for six fits on 20k pixels). ``None`` leaves the library default.
 
 Known limits (robustness: docs/evaluation.md, "Robustness to exposure, clipping and light"):
-below ~10 % peak the 8–10-material builds still lose materials (denoising recovers some), above
+below ~10 % peak the 8–10-material builds still lose their smallest parts (denoising, dim
+regions and the near-black test on the denoised cube recover most: K ±1 on 16 of 18 frames at 5 %), above
 ~150 % clipping still splits some (at 200 % the censored fit takes a glossy material's highlights
-for materials of their own), and under the spotlight faces in shadow fall to the backdrop
-(there even a classifier told the truth, ``metrics.bounds``, loses 0.06–0.11 Dice per pixel);
+for materials of their own), and under the spotlight faces in shadow are found only in part
+(dim regions) and labelled from little signal (there even a classifier told the truth,
+``metrics.bounds``, loses 0.06–0.11 Dice per pixel);
 the brightness coordinate separates dark grey from silver, but silver and cold white (close in
 both shape and brightness) can still merge; materials that cover only a few pixels have no
 homogeneous interior and are found only if their spectra stand out. The defaults were chosen on
