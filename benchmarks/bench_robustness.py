@@ -152,7 +152,7 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     cells = list(dict.fromkeys(s["cell"] for s in summary))
     by = {(s["cell"], s["variant"]): s for s in summary}
     x = np.arange(len(cells))
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 7), sharex=True)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(14, 7), sharex=True)
     for off, v, label, colour in ((-0.27, "before", "before (robust=False)", "#cccccc"),
                                   (0.0, "fifth", "fifth pass (censored fit of saturated pixels)", "#9ecae1"),
                                   (0.27, "after", "now (dim regions, near-black denoised)", "#1f77b4")):
@@ -167,15 +167,16 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     ax1.axhline(0.9, color="red", lw=1, ls="--", label="goal ≥ 90 %")
     ax1.set_ylabel("K within ±1 of visible")
     ax1.set_ylim(0, 1.05)
-    ax1.legend(loc="lower right", fontsize=8)
+    # legends beside the axes: inside, they hid bars of the last and the spotlight cells
+    ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax2.axhline(-0.05, color="red", lw=1, ls="--", label="goal ≥ −0.05")
     ax2.axhline(0, color="black", lw=0.5)
     ax2.set_ylabel("macro Dice − Dice at 60 % peak")
     ax2.set_xticks(x, cells, rotation=45, ha="right")
-    ax2.legend(loc="lower right", fontsize=7, ncol=2)
+    ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     ax1.set_title(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
