@@ -116,6 +116,10 @@ def test_console_end_to_end(served, new_page) -> None:
     # the end is noticed: a toast (no notification permission here) and the tab's title
     page.wait_for_function(f"document.querySelector('#toasts')?.textContent.includes('{sid} completed')")
     assert page.title().startswith("✔ completed")
+    # the coverage map follows the end: every pose captured, none left pending
+    page.wait_for_function("document.querySelector('#run-coverage .pic-legend')?.textContent"
+                           ".includes('captured 4') && "
+                           "!document.querySelector('#run-coverage rect.cov-pending')", timeout=10000)
     shot(page, "console_sessions.png")
     # the fault count opens the log (the daemon's activity: this session's start at least); Esc
     # closes it and does not stop the rig

@@ -423,7 +423,12 @@ async function pollRun() {
   const id = state.watched; if (!id) return;
   const s = await guarded(() => api("GET", "/sessions/" + id));
   if (!s) return;
-  $("run-state").textContent = s.state === "queued" && s.queue_position ? `queued (#${s.queue_position})` : s.state;
+  const shownState = s.state === "queued" && s.queue_position ? `queued (#${s.queue_position})` : s.state;
+  const changed = $("run-state").textContent !== shownState;
+  $("run-state").textContent = shownState;  // written every poll: feedback.js observes it per session
+  // the pictures (coverage map) redraw at once, not at their next tick: "completed" beside poses
+  // still drawn pending, for up to a second, read as a fault
+  if (changed) document.dispatchEvent(new CustomEvent("run-state"));
   $("run-progress").max = Math.max(1, s.total);
   $("run-progress").value = s.done;
   // captures = lit frames + darks, the unit of done/total (the estimate says the same)

@@ -492,8 +492,16 @@ const pictures = (() => {
   const STATE_TEXT = { captured: "captured", flagged: "captured, QC flagged", skipped: "skipped (fault)", failed: "failed", pending: "pending" };
   async function coverageInto(box, sid) {
     if (!box || !sid) return;
+    // only the latest request draws: an earlier one answered late (taken while the session still
+    // ran) would put its pending cells back over the final map
+    const ticket = String(Number(box.dataset.ticket || 0) + 1);
+    box.dataset.ticket = ticket;
     let cov;
-    try { cov = await api("GET", `/sessions/${sid}/coverage`); } catch (e) { box.replaceChildren(mk("div", { class: "muted" }, e.message)); return; }
+    try { cov = await api("GET", `/sessions/${sid}/coverage`); } catch (e) {
+      if (box.dataset.ticket === ticket) box.replaceChildren(mk("div", { class: "muted" }, e.message));
+      return;
+    }
+    if (box.dataset.ticket !== ticket) return;
     const cell = 20, left = 40, top = 16;
     const frag = [];
     for (const lt of cov.lightings) {
@@ -603,6 +611,7 @@ const pictures = (() => {
     live.panel || liveSetup();
     viewerSetup();
     setInterval(coverageTick, 1000);
+    document.addEventListener("run-state", coverageTick);
     const cal = document.querySelector("#tabs button[data-view='calibration']");
     if (cal) cal.addEventListener("click", calibrationPictures);
     const refresh = byId("calib-pictures-refresh"); if (refresh) refresh.addEventListener("click", calibrationPictures);
