@@ -148,6 +148,17 @@ def test_console_end_to_end(served, new_page) -> None:
     with page.expect_download() as dl:
         page.click("#b-result button")
     assert dl.value.suggested_filename == f"{sid}-m2s2.zip"
+    # the table's words stay whole: headers, state and captures on one line each, and the
+    # session id broken only at its hyphens (under the card's wrap-anywhere rule "captures" and
+    # "completed" broke mid-word)
+    lines = page.evaluate("""() => [...document.querySelectorAll('#sessions-table th, '
+        + '#sessions-table td:nth-child(-n+3)')]
+        .map((c) => { const r = document.createRange(); r.selectNodeContents(c);
+          const tops = new Set([...r.getClientRects()].map((q) => Math.round(q.top)));
+          return [c.textContent, tops.size]; })""")
+    assert lines, "no sessions table cells"
+    for text, n in lines:
+        assert n <= (text.count("-") + 1 if text.startswith("2") else 1), (text, n)
     shot(page, "console_browser.png")
 
     # emergency stop from the keyboard during a session
