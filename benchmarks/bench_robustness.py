@@ -3,9 +3,9 @@
 Each cell renders the simulator's frames (``analysis.study.simframes.simulated_frames``) of
 3 satellites × 3 builds at two views (E1, azimuths 30° and 200°) under one condition and segments them with
 three variants of the segmenter (``VARIANTS``): ``before`` (``robust=False``, issue 15),
-``fifth`` (the fifth pass of issue 23: the default without the sixth pass's dim regions and
-near-black test on the denoised cube, ``dark_after_denoise=False, dim_radius=0``) and ``after``
-(the default).
+``fifth`` (the fifth pass of issue 23: the default without the sixth pass's dim regions,
+near-black test on the denoised cube and average-linkage merging), ``single`` (the default with
+the single-linkage merging of before) and ``after`` (the default).
 Per cell and variant: the share of frames with K within ±1 of the visible materials, mean
 K − true, mean macro Dice and its difference to the reference cell (peak 60 %, weak light, 1024²
 sensor: 256² cubes, the size of the issue-15 model-selection study; at 128² cubes the
@@ -56,7 +56,8 @@ GOAL_CELLS = ("peak-5%", "peak-10%", "peak-30%", "peak-60%", "peak-100%", "peak-
 # variant -> SpectralSegmenter keywords
 VARIANTS: dict[str, dict[str, Any]] = {
     "before": {"robust": False},
-    "fifth": {"dark_after_denoise": False, "dim_radius": 0},
+    "fifth": {"dark_after_denoise": False, "dim_radius": 0, "merge_linkage": "single"},
+    "single": {"merge_linkage": "single"},
     "after": {},
 }
 
@@ -114,18 +115,21 @@ def summarise(cells: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
 
 
 def markdown(summary: list[dict[str, Any]]) -> str:
-    lines = ["| cell | K ±1 before / fifth pass / after | Dice before / fifth pass / after |"
-             " ΔDice vs 60 % fifth pass / after | supervised ΔDice QDA / centroid |"
-             " CPU s/frame fifth pass / after |"
+    lines = ["| cell | K ±1 before / fifth / single / after | Dice before / fifth / single / after |"
+             " ΔDice vs 60 % fifth / single / after | supervised ΔDice QDA / centroid |"
+             " CPU s/frame fifth / after |"
              " K − true per frame after |",
              "|---|---|---|---|---|---|---|"]
     by = {(s["cell"], s["variant"]): s for s in summary}
     for cell in dict.fromkeys(s["cell"] for s in summary):
-        b, p, a = by[(cell, "before")], by[(cell, "fifth")], by[(cell, "after")]
-        lines.append(f"| {cell} | {b['within_1']:.0%} / {p['within_1']:.0%} / {a['within_1']:.0%} | "
-                     f"{b['dice']:.3f} / {p['dice']:.3f} / {a['dice']:.3f} | {p['dice_delta']:+.3f} / "
-                     f"{a['dice_delta']:+.3f} | {a['bound_qda_delta']:+.3f} / "
-                     f"{a['bound_centroid_delta']:+.3f} | "
+        b, p, o, a = (by[(cell, v)] for v in ("before", "fifth", "single", "after"))
+        def joined(key: str, fmt: str, rows: tuple[dict[str, Any], ...]) -> str:
+            return " / ".join(format(x[key], fmt) for x in rows)
+
+        lines.append(f"| {cell} | {joined('within_1', '.0%', (b, p, o, a))} | "
+                     f"{joined('dice', '.3f', (b, p, o, a))} | "
+                     f"{joined('dice_delta', '+.3f', (p, o, a))} | "
+                     f"{a['bound_qda_delta']:+.3f} / {a['bound_centroid_delta']:+.3f} | "
                      f"{p['s_median']:.2f} / {a['s_median']:.2f} | "
                      f"{' '.join(f'{e:+d}' for e in a['errors'])} |")
     return "\n".join(lines) + "\n"
@@ -153,11 +157,12 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     by = {(s["cell"], s["variant"]): s for s in summary}
     x = np.arange(len(cells))
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(14, 7), sharex=True)
-    for off, v, label, colour in ((-0.27, "before", "before (robust=False)", "#cccccc"),
-                                  (0.0, "fifth", "fifth pass (censored fit of saturated pixels)", "#9ecae1"),
-                                  (0.27, "after", "now (dim regions, near-black denoised)", "#1f77b4")):
-        ax1.bar(x + off, [by[(c, v)]["within_1"] for c in cells], 0.27, label=label, color=colour)
-        ax2.bar(x + off, [by[(c, v)]["dice_delta"] for c in cells], 0.27, label=label, color=colour)
+    for off, v, label, colour in ((-0.3, "before", "before (robust=False)", "#cccccc"),
+                                  (-0.1, "fifth", "fifth pass (censored fit of saturated pixels)", "#c6dbef"),
+                                  (0.1, "single", "dim regions, near-black denoised", "#6baed6"),
+                                  (0.3, "after", "now (and average-linkage merging)", "#08519c")):
+        ax1.bar(x + off, [by[(c, v)]["within_1"] for c in cells], 0.2, label=label, color=colour)
+        ax2.bar(x + off, [by[(c, v)]["dice_delta"] for c in cells], 0.2, label=label, color=colour)
     goal = [i for i, c in enumerate(cells) if c in GOAL_CELLS]
     for ax in (ax1, ax2):
         for i in goal:

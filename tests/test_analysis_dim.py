@@ -1,6 +1,6 @@
-"""Issue 23, sixth pass: regions too dim for a per-pixel threshold (``segmenters.foreground``) and
-near-black judged on the denoised cube. Each test also runs the behaviour before (or the rule
-without the step) where it failed, so it can fail."""
+"""Issue 23, sixth pass: regions too dim for a per-pixel threshold (``segmenters.foreground``),
+near-black judged on the denoised cube, and components merged by average linkage. Each test also
+runs the behaviour before (or the rule without the step) where it failed, so it can fail."""
 
 from __future__ import annotations
 
@@ -10,7 +10,11 @@ from scipy import ndimage
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.segmenters.foreground import DIM_MIN_PIXELS, dim_regions, foreground_mask
-from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
+from m2s2hil.analysis.segmenters.spectral import (
+    SpectralSegmenter,
+    average_linkage_groups,
+    single_linkage_groups,
+)
 from m2s2hil.analysis.study.simframes import simulated_frames
 
 
@@ -97,3 +101,51 @@ def test_a_dark_material_at_5_percent_peak_is_found_and_fitted(hubble_b2_at_5_pe
     per_pixel = SpectralSegmenter(dark_after_denoise=False).analyse(f.cube)
     assert per_pixel.fit is not None and int(per_pixel.fit[part].sum()) == 0
     assert majority(per_pixel.labels, part) in {majority(per_pixel.labels, o) for o in others}
+
+
+def chain_angles(step_deg: float, n: int) -> np.ndarray:
+    """Pairwise angles of n unit spectra ``step_deg`` apart along one great circle."""
+    t = np.radians(step_deg) * np.arange(n)
+    u = np.stack([np.cos(t), np.sin(t)], axis=1)
+    return np.degrees(np.arccos(np.clip(u @ u.T, -1.0, 1.0)))
+
+
+def test_average_linkage_does_not_chain_where_single_linkage_does():
+    # seven components 0.5° apart: 3° end to end; each neighbour is under a 1.5° merge angle
+    angle = chain_angles(0.5, 7)
+    single = single_linkage_groups(angle, np.full(angle.shape, 1.5))
+    average = average_linkage_groups(angle, 1.5)
+    assert single.tolist() == [0] * 7  # one chain: both ends 3° apart in one group
+    assert int(average.max()) + 1 >= 2
+    for g in np.unique(average):  # within a group, the mean angle stays under the limit
+        idx = np.flatnonzero(average == g)
+        if idx.size > 1:
+            assert angle[np.ix_(idx, idx)][np.triu_indices(idx.size, 1)].mean() < 1.5
+    # groups numbered by their first component, as the union-find numbered them
+    assert average[0] == 0 and all(np.diff(np.maximum.accumulate(average)) <= 1)
+    # two tight pairs far apart: both rules agree
+    pairs = chain_angles(0.3, 2)
+    far = np.block([[pairs, np.full((2, 2), 20.0)], [np.full((2, 2), 20.0), pairs]])
+    assert single_linkage_groups(far, np.full(far.shape, 1.5)).tolist() == [0, 0, 1, 1]
+    assert average_linkage_groups(far, 1.5).tolist() == [0, 0, 1, 1]
+
+
+@pytest.fixture(scope="module")
+def hubble_b2_spotlight():
+    # Hubble B2 under the spotlight at 0°: its body and dark part, 2.2° apart in shape, are fitted
+    # as components a fraction of a degree apart along the shading, which chained
+    return next(iter(simulated_frames(satellites=["hubble"], builds=["B2"], lightings=["directional"],
+                                      elevations=["E1"], azimuths=[30.0], size=1024, spot_angle_deg=0.0)))
+
+
+def test_the_dark_part_under_the_spotlight_keeps_its_own_group(hubble_b2_spotlight):
+    f = hubble_b2_spotlight
+    dark = dark_part(f.cube, f.gt)
+    part = f.gt == dark
+    others = [f.gt == i for i in np.unique(f.gt) if i > 0 and i != dark]
+    new = SpectralSegmenter().analyse(f.cube)
+    assert majority(new.labels, part) not in {majority(new.labels, o) for o in others}
+    chained = SpectralSegmenter(merge_linkage="single").analyse(f.cube)
+    assert majority(chained.labels, part) in {majority(chained.labels, o) for o in others}
+    with pytest.raises(AnalysisInputError, match="merge_linkage"):
+        SpectralSegmenter(merge_linkage="complete")  # type: ignore[arg-type]
