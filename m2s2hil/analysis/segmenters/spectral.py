@@ -71,9 +71,13 @@ materials", has the comparison that chose them):
    components end with ~0 weight. ``n_materials`` fixes the count (``for_build``: from the
    catalog, named ``spectral-catalog-k``). A single-band cube: the foreground is one material.
 5. Clean-up: components whose unit mean spectra (brightness coordinate left out) lie within
-   ``merge_angle_deg`` (1.5°) merge (transitively) — or, with ``merge_noise`` k > 0 (robust only;
-   off by default: at the reference it merged real materials), within k × the angle two samples
-   of one spectrum differ by at the components' brightness; groups under ``min_material_fraction``
+   ``merge_angle_deg`` (1.5°) merge. Robust (``merge_linkage="average"``, sixth pass of issue 23):
+   by average linkage, two groups joining while the mean angle between their components is under
+   it; single linkage (``"single"``, the issue-15 rule and ``robust=False``'s) joined chains of
+   components along a material's shading, and so materials 2° apart. Or, with ``merge_noise``
+   k > 0 (robust only, single linkage; off by default: at the reference it merged real
+   materials), within k × the angle two samples of one spectrum differ by at the components'
+   brightness; groups under ``min_material_fraction``
    (0.2 %) of the weight are dropped; every foreground pixel goes to the group with the largest
    summed posterior. Robust only (since the fourth pass of issue 23): a group whose pixels keep
    fewer than ``min_core_fraction`` (0.06 %, ≈ 10 pixels of a 256² cube's object) of the
