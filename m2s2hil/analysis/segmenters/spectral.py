@@ -70,6 +70,9 @@ materials", has the comparison that chose them):
    ``BayesianGaussianMixture`` with a sparse Dirichlet weight prior (``weight_prior``), surplus
    components end with ~0 weight. ``n_materials`` fixes the count (``for_build``: from the
    catalog, named ``spectral-catalog-k``). A single-band cube: the foreground is one material.
+   A fit whose component collapses (sklearn's "ill-defined empirical covariance") is refitted
+   with 10×, 100×, 1000× ``reg_covar``; a count that still fails ends the sweep, and if the
+   fewest components fail, ``AnalysisInputError("reg_covar", …)`` says what to change.
 5. Clean-up: components whose unit mean spectra (brightness coordinate left out) lie within
    ``merge_angle_deg`` (1.5°) merge. Robust (``merge_linkage="average"``, sixth pass of issue 23):
    by average linkage, two groups joining while the mean angle between their components is under
@@ -109,8 +112,9 @@ the simulator's frames (docs/evaluation.md), not on real captures.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 import numpy as np
 from scipy import ndimage
@@ -142,6 +146,7 @@ FitPixels = Literal["homogeneous", "all"]
 Features = Literal["unit", "log-chromaticity"]
 Denoise = Literal["guided", "slic"]
 MergeLinkage = Literal["single", "average"]
+M = TypeVar("M", "GaussianMixture", "BayesianGaussianMixture")
 
 
 @dataclass(frozen=True)
@@ -278,6 +283,30 @@ def _first_seen(group: np.ndarray) -> np.ndarray:
     _, first, inverse = np.unique(group, return_index=True, return_inverse=True)
     order = np.argsort(np.argsort(first))
     return order[inverse]
+
+
+REG_COVAR_RETRIES = 3  # each ×10: sklearn's own advice for a collapsed component
+
+
+def _fitted(make: Callable[[float], M], sample: np.ndarray, reg_covar: float, what: str) -> M:
+    """``make(reg_covar).fit(sample)``; a component collapsed onto too few distinct samples (a
+    ``diag`` fit of a one-material build at 60 % peak did) is refitted with 10×, 100×, 1000× the
+    regularisation before the fit is refused with a typed error that says what to change."""
+    from sklearn.exceptions import ConvergenceWarning
+
+    reg = reg_covar
+    for _ in range(REG_COVAR_RETRIES + 1):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ConvergenceWarning)  # a non-converged fit still has a BIC
+                return make(reg).fit(sample)
+        except ValueError as exc:
+            if "ill-defined empirical covariance" not in str(exc):
+                raise
+            reg *= 10.0
+    problem = (f"the mixture of {what} could not be fitted: a component collapsed even with reg_covar "
+               f"{reg / 10:g}; raise reg_covar, lower max_materials or use covariance_type='full'")
+    raise AnalysisInputError("reg_covar", problem)
 
 
 def ranked(labels: np.ndarray) -> np.ndarray:
@@ -459,37 +488,29 @@ class SpectralSegmenter:
         return self.analyse(cube).labels
 
     def _fit(self, sample: np.ndarray, n: int) -> GaussianMixture:
-        from sklearn.exceptions import ConvergenceWarning
         from sklearn.mixture import GaussianMixture
 
-        gm = GaussianMixture(
+        return _fitted(lambda reg: GaussianMixture(
             n_components=n,
             covariance_type=self.covariance_type,
-            reg_covar=self.reg_covar,
+            reg_covar=reg,
             max_iter=self.max_iter,
             random_state=self.seed,
-        )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)  # a non-converged fit still has a BIC
-            return gm.fit(sample)
+        ), sample, self.reg_covar, f"{n} components")
 
     def _fit_bayes(self, sample: np.ndarray, upper: int) -> BayesianGaussianMixture:
-        from sklearn.exceptions import ConvergenceWarning
+        """Variational mixture with a sparse Dirichlet weight prior: surplus components get ~0 weight."""
         from sklearn.mixture import BayesianGaussianMixture
 
-        """Variational mixture with a sparse Dirichlet weight prior: surplus components get ~0 weight."""
-        bgm = BayesianGaussianMixture(
+        return _fitted(lambda reg: BayesianGaussianMixture(
             n_components=upper,
             covariance_type=self.covariance_type,
             weight_concentration_prior_type="dirichlet_distribution",
             weight_concentration_prior=self.weight_prior,
-            reg_covar=self.reg_covar,
+            reg_covar=reg,
             max_iter=max(self.max_iter, 200),
             random_state=self.seed,
-        )
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            return bgm.fit(sample)
+        ), sample, self.reg_covar, f"{upper} components (variational)")
 
     def _score(self, gm: GaussianMixture, sample: np.ndarray) -> float:
         """BIC, or ICL = BIC + 2·(classification entropy), which also penalises overlapping components."""
@@ -515,7 +536,12 @@ class SpectralSegmenter:
         else:
             best_n, stale = 0, 0
             for n in range(min(self.min_materials, upper), upper + 1):
-                gm = self._fit(sample, n)
+                try:
+                    gm = self._fit(sample, n)
+                except AnalysisInputError:
+                    if best is None:  # not even the fewest components fit: say so
+                        raise
+                    break  # more components than the sample can hold apart: the count so far stands
                 bic[n] = self._score(gm, sample)
                 if best is None or bic[n] < bic[best_n]:
                     best, best_n, stale = gm, n, 0
