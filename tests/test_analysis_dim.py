@@ -4,6 +4,8 @@ runs the behaviour before (or the rule without the step) where it failed, so it 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -66,11 +68,16 @@ def test_dim_regions_off_and_degenerate_masks():
         SpectralSegmenter(dim_radius=-1)
 
 
+def hubble_b2(**conditions: Any) -> Any:
+    """Hubble B2 at E1, 30°, 256² cube, under ``conditions`` (``simulated_frames`` keywords)."""
+    return next(iter(simulated_frames(satellites=["hubble"], builds=["B2"], elevations=["E1"],
+                                      azimuths=[30.0], size=1024, **conditions)))
+
+
 @pytest.fixture(scope="module")
 def hubble_b2_at_5_percent():
     # Hubble B2 at 5 % of full scale: its dark part (2 514 pixels of a 256² cube) fell to the backdrop
-    return next(iter(simulated_frames(satellites=["hubble"], builds=["B2"], lightings=["weak"],
-                                      elevations=["E1"], azimuths=[30.0], size=1024, peak_fraction=0.05)))
+    return hubble_b2(lightings=["weak"], peak_fraction=0.05)
 
 
 def dark_part(cube: np.ndarray, gt: np.ndarray) -> int:
@@ -84,23 +91,28 @@ def majority(labels: np.ndarray, where: np.ndarray) -> int:
     return int(np.bincount(labels[where]).argmax())
 
 
+def has_own_group(labels: np.ndarray, gt: np.ndarray, part: int) -> bool:
+    """Whether the label most of material ``part`` carries is no other material's majority."""
+    others = {majority(labels, gt == i) for i in np.unique(gt) if i > 0 and i != part}
+    return majority(labels, gt == part) not in others
+
+
 def test_a_dark_material_at_5_percent_peak_is_found_and_fitted(hubble_b2_at_5_percent):
     f = hubble_b2_at_5_percent
     dark = dark_part(f.cube, f.gt)
     part = f.gt == dark
-    others = [f.gt == i for i in np.unique(f.gt) if i > 0 and i != dark]
     new = SpectralSegmenter().analyse(f.cube)
     assert new.fit is not None
     assert (new.labels[part] > 0).mean() > 0.7
     assert int(new.fit[part].sum()) > 0  # no longer near-black once denoised
-    assert majority(new.labels, part) not in {majority(new.labels, o) for o in others}
+    assert has_own_group(new.labels, f.gt, dark)
     # before: the per-pixel threshold handed it to the backdrop
     old = SpectralSegmenter(dim_radius=0, dark_after_denoise=False).analyse(f.cube)
     assert (old.labels[part] > 0).mean() < 0.3
     # found, but judged near-black per pixel: out of the fit, and labelled as a neighbour
     per_pixel = SpectralSegmenter(dark_after_denoise=False).analyse(f.cube)
     assert per_pixel.fit is not None and int(per_pixel.fit[part].sum()) == 0
-    assert majority(per_pixel.labels, part) in {majority(per_pixel.labels, o) for o in others}
+    assert not has_own_group(per_pixel.labels, f.gt, dark)
 
 
 def chain_angles(step_deg: float, n: int) -> np.ndarray:
@@ -134,18 +146,13 @@ def test_average_linkage_does_not_chain_where_single_linkage_does():
 def hubble_b2_spotlight():
     # Hubble B2 under the spotlight at 0°: its body and dark part, 2.2° apart in shape, are fitted
     # as components a fraction of a degree apart along the shading, which chained
-    return next(iter(simulated_frames(satellites=["hubble"], builds=["B2"], lightings=["directional"],
-                                      elevations=["E1"], azimuths=[30.0], size=1024, spot_angle_deg=0.0)))
+    return hubble_b2(lightings=["directional"], spot_angle_deg=0.0)
 
 
 def test_the_dark_part_under_the_spotlight_keeps_its_own_group(hubble_b2_spotlight):
     f = hubble_b2_spotlight
     dark = dark_part(f.cube, f.gt)
-    part = f.gt == dark
-    others = [f.gt == i for i in np.unique(f.gt) if i > 0 and i != dark]
-    new = SpectralSegmenter().analyse(f.cube)
-    assert majority(new.labels, part) not in {majority(new.labels, o) for o in others}
-    chained = SpectralSegmenter(merge_linkage="single").analyse(f.cube)
-    assert majority(chained.labels, part) in {majority(chained.labels, o) for o in others}
+    assert has_own_group(SpectralSegmenter().analyse(f.cube).labels, f.gt, dark)
+    assert not has_own_group(SpectralSegmenter(merge_linkage="single").analyse(f.cube).labels, f.gt, dark)
     with pytest.raises(AnalysisInputError, match="merge_linkage"):
         SpectralSegmenter(merge_linkage="complete")  # type: ignore[arg-type]

@@ -28,7 +28,7 @@ exposure gives the same numbers (shape and brightness coordinate alike).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -66,6 +66,22 @@ class Reliability:
     @property
     def unreliable(self) -> np.ndarray:
         return self.saturated | self.dark
+
+    @property
+    def noise_energy(self) -> float:
+        """The noise floor as band energy over the used bands: what ``snr`` divides by."""
+        return noise_energy(self.noise, self.bands)
+
+    def rejudged(self, energy: np.ndarray, gain: float, fg: np.ndarray, snr_min: float) -> Reliability:
+        """Near-black judged again on a cube whose noise fell by ``gain`` (denoised: the energy is
+        the filtered cube's, over the used bands); clipping is unchanged."""
+        snr = energy / self.noise_energy * gain
+        return replace(self, dark=(snr < snr_min) & fg, snr=snr)
+
+
+def noise_energy(noise: np.ndarray, bands: np.ndarray) -> float:
+    """Per-band noise σ as one band-energy figure over ``bands`` (√Σσ²)."""
+    return float(np.sqrt(np.sum(noise[bands] ** 2)))
 
 
 def normalise_cube(
@@ -171,7 +187,7 @@ def reliability(
         sat = sat | (given & ~clipped[~keep].any(axis=0)) if (~keep).any() else sat | given
     noise = backdrop_noise(cube, fg)
     energy = np.sqrt(np.einsum("bhw,bhw->hw", cube[bands], cube[bands]))
-    snr = energy / float(np.sqrt(np.sum(noise[bands] ** 2)))
+    snr = energy / noise_energy(noise, bands)
     return Reliability(bands, clipped, sat & fg, (snr < snr_min) & fg, noise, snr)
 
 

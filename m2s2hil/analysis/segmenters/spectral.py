@@ -113,7 +113,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal, TypeVar
 
 import numpy as np
@@ -602,7 +602,7 @@ class SpectralSegmenter:
         clean = ndimage.binary_erosion(fg) & ~rel.saturated
         clean_n = np.bincount(ids, weights=clean.ravel().astype(np.float64), minlength=n)
         clean_share = clean_n / np.maximum(size, 1)
-        noise_e = float(np.sqrt(np.sum(rel.noise[rel.bands] ** 2)))
+        noise_e = rel.noise_energy
         snr = np.linalg.norm(means, axis=1) * np.sqrt(np.maximum(size, 1)) / noise_e
         # spread inside a superpixel (RMS angle of its pixels to its mean): one that straddles two
         # materials spreads more than the noise; like the homogeneity test, it stays out of the fit
@@ -734,9 +734,7 @@ class SpectralSegmenter:
                 # near-black is judged on the cube the fit sees: averaging n pixels divides the noise
                 # by √n, measured here as the fall of the angular noise (a dark material at 5 % peak
                 # was near-black per pixel, out of the fit, and joined its neighbour)
-                gain = max(raw_noise_deg / noise_deg, 1.0)
-                snr = energy / float(np.sqrt(np.sum(rel.noise[rel.bands] ** 2)))
-                rel = replace(rel, dark=(snr * gain < self.snr_min) & fg)
+                rel = rel.rejudged(energy, max(raw_noise_deg / noise_deg, 1.0), fg, self.snr_min)
             # filtered neighbours are correlated: fit on a coarser grid (0: one sample per window)
             stride = self.fit_stride or 2 * radius + 1
         elif per > 1 and rel is not None:
