@@ -120,6 +120,7 @@ def test_console_end_to_end(served, new_page) -> None:
     page.wait_for_function("document.querySelector('#run-coverage .pic-legend')?.textContent"
                            ".includes('captured 4') && "
                            "!document.querySelector('#run-coverage rect.cov-pending')", timeout=10000)
+    page.wait_for_function("document.getElementById('rig-status').textContent === 'rig idle'", timeout=10000)
     shot(page, "console_sessions.png")
     # the fault count opens the log (the daemon's activity: this session's start at least); Esc
     # closes it and does not stop the rig
@@ -171,6 +172,8 @@ def test_console_end_to_end(served, new_page) -> None:
     assert st["state"] == "estopped" and st["done"] < st["total"]
     assert d.rig.lights.state() == frozenset()
     page.wait_for_function("document.getElementById('rig-status').textContent.startsWith('held')")
+    page.wait_for_function("document.getElementById('run-state').textContent === 'estopped'", timeout=10000)
+    assert page.is_disabled("#run-abort") and page.is_disabled("#run-pause")
     shot(page, "console_estop.png")
     page.click("#queue-release")
     page.wait_for_function("document.getElementById('rig-status').textContent.includes('idle')")

@@ -113,7 +113,8 @@ async function emergencyStop() {
     banner("EMERGENCY STOP: " + (r.safe ? "rig safe (lamps off, motion stopped)" : "rig NOT confirmed safe: " +
       r.errors.join("; ")) + ". The queue is held until released.", "stop");
   } catch (e) { banner("EMERGENCY STOP FAILED: " + e.message, "stop"); }
-  await refreshStatus();
+  // the watched session too: "running" with Pause and Abort live beside "held" read as a stop not taken
+  await Promise.all([refreshStatus(), pollRun()]);
   if (!$("estop-release").hidden) $("estop-release").focus();  // Release is where the stop was pressed
 }
 $("estop").addEventListener("click", emergencyStop);
@@ -426,9 +427,9 @@ async function pollRun() {
   const shownState = s.state === "queued" && s.queue_position ? `queued (#${s.queue_position})` : s.state;
   const changed = $("run-state").textContent !== shownState;
   $("run-state").textContent = shownState;  // written every poll: feedback.js observes it per session
-  // the pictures (coverage map) redraw at once, not at their next tick: "completed" beside poses
-  // still drawn pending, for up to a second, read as a fault
-  if (changed) document.dispatchEvent(new CustomEvent("run-state"));
+  // the pictures (coverage map) and the rig chip redraw at once, not at their next tick:
+  // "completed" beside poses still drawn pending, or beside "session …" in the chip, read as a fault
+  if (changed) { document.dispatchEvent(new CustomEvent("run-state")); refreshStatus(); }
   $("run-progress").max = Math.max(1, s.total);
   $("run-progress").value = s.done;
   // captures = lit frames + darks, the unit of done/total (the estimate says the same)
@@ -461,7 +462,7 @@ async function fillSheet(id, box, key) {
     if (qc.flags && qc.flags.length) fig.classList.add("flagged");
     const ev = (f.meta && f.meta.event) || {};
     const caption = `${ev.lighting ?? ""} ${ev.elevation ?? ""} ${ev.azimuth_deg ?? "?"}°` +
-      (qc.score != null ? ` · QC ${qc.score.toFixed(2)}` : "") + (qc.flags && qc.flags.length ? " ⚑ " + qc.flags.join(",") : "");
+      (qc.score != null ? ` · QC ${qc.score.toFixed(2)}` : "") + (qc.flags && qc.flags.length ? " ⚑ " + qc.flags.join(", ") : "");
     fig.append(img, el("figcaption", caption));
     box.append(fig);
     if (f.preview_url) blobUrl(f.preview_url).then((u) => { img.src = u; }).catch(() => {});
