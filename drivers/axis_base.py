@@ -184,6 +184,12 @@ class RotaryAxisBase(ABC):
     @abstractmethod
     def is_moving(self) -> bool: ...
 
+    @abstractmethod
+    def motion(self) -> tuple[bool, float]:
+        """(moving, position in degrees) from one poll, as :meth:`is_moving` and
+        :meth:`position` judge them: a view built from two polls can pair a mid-move position
+        with "standing" when the move ends between them."""
+
     def _speed_limits(self) -> tuple[float, float]:
         """Top speed (°/s) and acceleration (°/s²) a move may use."""
         return self.max_speed_dps, self.accel_dps2

@@ -553,6 +553,10 @@ class GrblAxis(RotaryAxisBase):
     def is_moving(self) -> bool:
         return self.ctl.status().moving
 
+    def motion(self) -> tuple[bool, float]:
+        st = self.ctl.status()
+        return st.moving, (self.ctl.position_in(st, self.letter) - self.origin_units) / self.units_per_degree
+
     def _motion_state(self) -> tuple[bool, float, str]:
         """One ``?``: anything but Idle is still on its way (Hold:0 too, and it makes no progress)."""
         st = self.ctl.status()

@@ -323,6 +323,9 @@ class ZaberAxis(RotaryAxisBase):
     def is_moving(self) -> bool:
         return self.dev.request(self.number, "", idempotent=True).busy
 
+    def motion(self) -> tuple[bool, float]:
+        return self._poll_pos()
+
     def wait_until_idle(self, timeout: float) -> None:
         self.dev.wait_until_idle(self.number, timeout)
 

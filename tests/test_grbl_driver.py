@@ -2,6 +2,7 @@
 and every injected fault ending in its typed error or a recovery."""
 
 import itertools
+from types import SimpleNamespace
 
 import pytest
 import serial
@@ -25,6 +26,8 @@ from m2s2hil.simulators.grbl_settings import GrblAxisSettings
 from m2s2hil.simulators.pty import PtyServer
 from m2s2hil.simulators.scripted import ScriptedDevice
 from m2s2hil.simulators.world import World
+
+from m2s2hil.rig.manual import ManualControl
 
 _names = itertools.count()
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
@@ -226,8 +229,11 @@ def test_session_against_the_simulator(stage, vclock):
     turntable.rotate(30.0)
     vclock.advance(2.0)
     assert turntable.is_moving() and 140 < turntable.position() < 150
+    moving, degrees = turntable.motion()  # one report gives both
+    assert moving and degrees == pytest.approx(turntable.position(), abs=1e-6)
     turntable.stop()
     assert not turntable.is_moving() and sim.state == "Idle"
+    assert turntable.motion() == (False, pytest.approx(turntable.position(), abs=1e-6))
     turntable.move_to(10.0, wait=False)
     assert turntable.is_moving()
     turntable.wait_until_idle(10.0)
@@ -448,6 +454,39 @@ def test_clear_alarm_after_a_soft_limit_copes_with_the_late_ok(vclock):
         assert ctl.clear_alarm().state == "Idle"
         assert ctl.command("$I")  # answered by its own [VER:] lines and ok, nothing left over
         assert ctl.command("G53 G0 X-10") == [] and ctl.wait_until_idle(5).mpos[0] == pytest.approx(-10.0)
+    finally:
+        ctl.close()
+        registry.unregister(name)
+
+
+class _StalledBetweenPolls(GrblSimulator):
+    """A controller seen from a loaded host: a second passes after every status report."""
+
+    def _realtime(self, b: int, now: float) -> None:
+        super()._realtime(b, now)
+        if b == 0x3F:
+            self.clock.advance(1.0)
+
+
+def test_axis_view_is_one_status_report(vclock):
+    """The console's axis view: polled as position() then is_moving(), a move that ends between
+    the two reads as standing mid-way (CI saw 2.9° for a 15° jog); one report cannot tear."""
+    name = f"grbl-stalled-{next(_names)}"
+    sim = _StalledBetweenPolls(name, vclock, axes={"X": GrblAxisSettings(max_rate=3600, accel=120)})
+    registry.register(name, sim)
+    ctl = GrblController(f"sim://{name}", clock=vclock)
+    try:
+        ctl.connect()
+        axis = ctl.axis("X", name="turntable", **TURNTABLE)
+        rig = SimpleNamespace(axis=lambda role: axis, config=SimpleNamespace(
+            axes={"turntable": SimpleNamespace(min_deg=-370, max_deg=370, max_speed_dps=60)}))
+        axis.move_to(15.0, wait=False)
+        torn = (axis.position(), axis.is_moving())
+        assert torn[0] < 15.0 - 1 and not torn[1]  # the tear this test is about
+        axis.move_to(0.0)
+        axis.move_to(15.0, wait=False)
+        view = ManualControl(rig).axis_view("turntable")
+        assert view.moving and view.position_deg < 15.0  # mid-move, and said so
     finally:
         ctl.close()
         registry.unregister(name)

@@ -186,8 +186,11 @@ def test_session_against_the_simulator(rotary, vclock):
     axis.rotate(30.0)
     vclock.advance(2.0)
     assert axis.is_moving() and 140 < axis.position() < 150
+    moving, degrees = axis.motion()  # one reply gives both
+    assert moving and degrees == pytest.approx(axis.position(), abs=1e-6)
     axis.stop()
     assert not axis.is_moving()
+    assert axis.motion() == (False, pytest.approx(axis.position(), abs=1e-6))
     axis.rotate(60.0, direction=-1)
     vclock.advance(60)
     assert axis.position() == pytest.approx(-370.0, abs=1e-3)  # the device stops at the soft limit

@@ -42,8 +42,9 @@ def device_states(rig: Rig, hw: threading.Lock, engine: Engine | None) -> list[d
                     if kind == "motion":
                         for r in roles:
                             ax = rig.turntable if r == "turntable" else rig.tilt
-                            entry["state"][f"{r}_deg"] = float(ax.position())
-                            entry["state"][f"{r}_moving"] = bool(ax.is_moving())
+                            moving, degrees = ax.motion()
+                            entry["state"][f"{r}_deg"] = float(degrees)
+                            entry["state"][f"{r}_moving"] = bool(moving)
                     else:
                         on = sorted(rig.lights.state())
                         names = {lc.channel: n for n, lc in cfg.lamps.items()}

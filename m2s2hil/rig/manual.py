@@ -73,7 +73,8 @@ class ManualControl:
     def axis_view(self, role: AxisRole) -> AxisView:
         ax = self.rig.axis(role)
         cfg = self.rig.config.axes[role]
-        return AxisView(role, float(ax.position()), bool(ax.is_moving()), cfg.min_deg, cfg.max_deg,
+        moving, degrees = ax.motion()  # one poll: two could tear mid-move
+        return AxisView(role, float(degrees), bool(moving), cfg.min_deg, cfg.max_deg,
                         cfg.max_speed_dps)
 
     def is_moving(self, role: AxisRole) -> bool:

@@ -41,6 +41,10 @@ class MirroredAxis:
         self._last = self._axis.position()
         return self._last
 
+    def motion(self) -> tuple[bool, float]:
+        moving, self._last = self._axis.motion()
+        return moving, self._last
+
 
 class MirroredLights:
     def __init__(self, lights: Any, world: Any) -> None:
