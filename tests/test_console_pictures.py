@@ -357,6 +357,12 @@ def test_pictures_in_the_browser(d, new_page) -> None:
         shot(page, "console_frame_viewer_phone.png")
         assert width <= 390, f"the frame viewer is {width} px wide on a 390-px phone"
         assert stage and spec and spec["y"] >= stage["y"] + stage["height"] - 1  # stacked, not squeezed
+        # a session-end toast spans the phone's width: the viewer's chart scrolls up from under it
+        page.evaluate("toast('session s-test completed', false)")
+        page.locator(".pic-viewer").evaluate("v => { v.scrollTop = v.scrollHeight; }")
+        chart, note = (page.locator(sel).bounding_box() for sel in ("#fv-spectrum", "#toasts"))
+        shot(page, "console_frame_viewer_phone_toast.png")
+        assert chart and note and chart["y"] + chart["height"] <= note["y"], (chart, note)
         page.close()  # before its server goes
     assert not errors, errors
 

@@ -14,10 +14,20 @@ function toast(text, bad) {
   const t = el("div", undefined, "toast" + (bad ? " bad" : ""));
   t.setAttribute("role", "status");
   t.append(el("span", text), document.createTextNode(" "));
-  t.append(button("×", () => t.remove(), "linkish"));
+  const drop = () => { t.remove(); toastRoom(box); };
+  t.append(button("×", drop, "linkish"));
   t.lastChild.setAttribute("aria-label", "dismiss the notice");
   box.append(t);
-  setTimeout(() => t.remove(), 15000);
+  toastRoom(box);
+  setTimeout(drop, 15000);
+}
+
+// Room below the page and the frame viewer for the toasts (console.css --toast-room): on a phone a
+// toast spans the screen and would hide the bottom of what is open (the viewer's spectrum chart);
+// with the room, that part scrolls up from under it.
+function toastRoom(box) {
+  const h = box.childElementCount ? box.getBoundingClientRect().height + 24 : 0;
+  document.documentElement.style.setProperty("--toast-room", `${Math.ceil(h)}px`);
 }
 
 function notifyEnd(sid, st) {
