@@ -243,7 +243,17 @@ const pictures = (() => {
     cv.addEventListener("pointerup", up); cv.addEventListener("pointercancel", up);
     regionPicker(cv, (cx, cy, clamp) => viewToSensor(cx, cy, clamp), (reg) => { fv.region = reg; frameSpectrum(); },
       () => fv.sensor !== null && fv.pointers.size <= 1, () => byId("fv-drag").value === "region");
-    new ResizeObserver(() => draw()).observe(cv);
+    // a resized stage (a phone turned, the window narrowed) keeps what was in its centre there:
+    // unzoomed, the picture is fitted and centred again; zoomed, the pan follows half the change
+    let size = [cv.clientWidth, cv.clientHeight];
+    new ResizeObserver(() => {
+      const now = [cv.clientWidth, cv.clientHeight];
+      if (fv.img && now[0] && now[1]) {
+        if (fv.scale === 1 || !size[0] || !size[1]) resetView();
+        else { fv.tx += (now[0] - size[0]) / 2; fv.ty += (now[1] - size[1]) / 2; }
+      }
+      size = now; draw();
+    }).observe(cv);
     // thumbnails of the contact sheets open the viewer
     for (const [boxId, sid] of [["b-sheet", () => state.browserId], ["run-sheet", () => state.watched]]) {
       const box = byId(boxId); if (!box) continue;
@@ -384,6 +394,8 @@ const pictures = (() => {
       if (fv.img) URL.revokeObjectURL(fv.img.src);
       const changed = !fv.img || fv.img.naturalWidth !== img.naturalWidth || fv.img.naturalHeight !== img.naturalHeight;
       fv.img = img;
+      // on a phone the stage takes the picture's shape (pictures.css): no black bands over the ten bands
+      document.querySelector(".pic-stage").style.setProperty("--pic-aspect", `${img.naturalWidth} / ${img.naturalHeight}`);
       fv.bandsGeom = fv.mode === "bands" ? bandsGeometry(img) : null;
       if (changed) resetView();
       draw();
