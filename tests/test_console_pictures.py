@@ -358,10 +358,11 @@ def test_pictures_in_the_browser(d, new_page) -> None:
         assert width <= 390, f"the frame viewer is {width} px wide on a 390-px phone"
         assert stage and spec and spec["y"] >= stage["y"] + stage["height"] - 1  # stacked, not squeezed
         # the picture was fitted on the desktop's stage: on the phone's it is fitted and centred again
-        placed = page.evaluate("(() => { const f = window.m2s2hilPictures.fv, cv = document.getElementById('fv-canvas');"
-                               " const k = Math.min(cv.clientWidth / f.img.naturalWidth, cv.clientHeight / f.img.naturalHeight);"
-                               " return [f.tx, cv.clientWidth - f.tx - f.img.naturalWidth * k,"
-                               " f.ty, cv.clientHeight - f.ty - f.img.naturalHeight * k]; })()")
+        placed = page.evaluate("""(() => {
+            const f = window.m2s2hilPictures.fv, cv = document.getElementById('fv-canvas');
+            const k = Math.min(cv.clientWidth / f.img.naturalWidth, cv.clientHeight / f.img.naturalHeight);
+            return [f.tx, cv.clientWidth - f.tx - f.img.naturalWidth * k,
+                    f.ty, cv.clientHeight - f.ty - f.img.naturalHeight * k]; })()""")
         assert abs(placed[0] - placed[1]) <= 1 and abs(placed[2] - placed[3]) <= 1, placed
         # a session-end toast spans the phone's width: the viewer's chart scrolls up from under it
         page.evaluate("toast('session s-test completed', false)")

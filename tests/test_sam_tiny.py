@@ -4,6 +4,8 @@ load, segment-anything's automatic mask generator, compositing, band fusion, bin
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -84,3 +86,42 @@ def test_a_checkpoint_of_another_architecture_is_refused_by_name(checkpoint, cub
     with pytest.raises(AnalysisInputError, match="generator_options"):
         SamSegmenter(path, model_type=TINY, generator_options={"points_per_sid": 4}).segment(cube)
 
+
+
+def test_the_architecture_is_read_off_the_checkpoint(torch, tmp_path, cube):
+    """model_type="auto" (the default): every dimension from the file's tensors except the
+    decoder's heads, which only reshape (SAM's 8)."""
+    from m2s2hil.analysis.segmenters.sam_model import architecture_of
+
+    eight = dataclasses.replace(TINY, name="inferred", decoder_num_heads=8)
+    torch.manual_seed(1)
+    model = build_sam_architecture(eight)
+    path = tmp_path / "sam_tiny8.pth"
+    torch.save({"model": model.state_dict()}, path)  # wrapped, as training checkpoints are
+    assert architecture_of(model.state_dict()) == eight
+    seg = SamSegmenter(path, generator_options=FAST)
+    assert seg.model_type == "auto" and seg.architecture is None
+    labels = seg.segment(cube)
+    assert labels.shape == cube.shape[1:] and seg.architecture == eight
+    loaded = seg._model.state_dict()
+    assert all(torch.equal(loaded[k], v) for k, v in model.state_dict().items())
+
+
+def test_the_published_architectures_are_recognised_by_their_shapes(torch):
+    """Built on the meta device (shapes, no memory): each reads back as itself, by name."""
+    from m2s2hil.analysis.segmenters.sam_model import SAM_ARCHITECTURES, architecture_of
+
+    for name, arch in SAM_ARCHITECTURES.items():
+        with torch.device("meta"):
+            state = build_sam_architecture(arch).state_dict()
+        assert architecture_of(state) is arch, name
+
+
+def test_a_file_that_is_no_sam_model_says_what_is_missing(torch, tmp_path, cube):
+    path = tmp_path / "other.pth"
+    torch.save({"fc.weight": torch.zeros(2, 2)}, path)
+    with pytest.raises(SegmenterUnavailableError, match="not a SAM model: it has no tensor 'image_encoder"):
+        SamSegmenter(path, generator_options=FAST).segment(cube)
+    torch.save([1, 2], path)
+    with pytest.raises(SegmenterUnavailableError, match="holds a list, not a state dict"):
+        SamSegmenter(path, generator_options=FAST).segment(cube)

@@ -3,7 +3,8 @@
 Needs ``pip install 'm2s2hil[sam]'`` (segment-anything + torch) and a checkpoint file
 the user supplies (e.g. ``sam_vit_h_4b8939.pth``; weights cannot be downloaded on the
 rig machines). Both are checked when the segmenter is built, the package is imported
-only at the first image. ``model_type`` names the architecture (``vit_h``, the paper's;
+only at the first image. ``model_type`` is ``"auto"`` (the default: the architecture is read off
+the checkpoint's tensors, ``sam_model.architecture_of``), names one (``vit_h``, the paper's;
 ``vit_l``; ``vit_b``) or is a ``sam_model.SamArchitecture``; the weights are loaded strictly
 by ``sam_model.build_sam_model`` (``tests/test_sam_tiny.py`` runs the whole path on a tiny
 randomly initialised model saved as a checkpoint). ``device="cuda"`` runs the model on a GPU.
@@ -83,7 +84,7 @@ class SamSegmenter:
         self,
         checkpoint: str | Path | None = None,
         *,
-        model_type: str | SamArchitecture = "vit_h",
+        model_type: str | SamArchitecture = "auto",
         device: str = "cpu",
         mode: Literal["bands", "image"] = "bands",
         bands: Sequence[int] = PAPER_BANDS,
@@ -117,14 +118,18 @@ class SamSegmenter:
         self._generator: MaskGenerator | None = mask_generator
         self._model: Any = None  # the loaded segment_anything Sam (None until the first image)
         self.checkpoint: Path | None = None
+        # None until the checkpoint is read when "auto"
+        self.architecture: SamArchitecture | None
         if isinstance(model_type, SamArchitecture):
             self.architecture = model_type
         elif model_type in SAM_ARCHITECTURES:
             self.architecture = SAM_ARCHITECTURES[model_type]
+        elif model_type == "auto":
+            self.architecture = None
         else:
-            raise AnalysisInputError("model_type", f"unknown SAM model {model_type!r}; "
-                                     f"known: {', '.join(sorted(SAM_ARCHITECTURES))} or a SamArchitecture")
-        self.model_type = self.architecture.name
+            raise AnalysisInputError("model_type", f"unknown SAM model {model_type!r}; known: auto, "
+                                     f"{', '.join(sorted(SAM_ARCHITECTURES))} or a SamArchitecture")
+        self.model_type = "auto" if self.architecture is None else self.architecture.name
         self.device = device
         if mask_generator is None:
             if checkpoint is None:
@@ -160,7 +165,7 @@ class SamSegmenter:
             except ImportError as exc:  # e.g. torch missing behind an installed segment_anything
                 raise SegmenterUnavailableError("sam", f"{exc}; {INSTALL_HINT}") from exc
             assert self.checkpoint is not None  # checked at construction
-            self._model = build_sam_model(self.architecture, self.checkpoint, self.device)
+            self._model, self.architecture = build_sam_model(self.architecture, self.checkpoint, self.device)
             try:
                 self._generator = SamAutomaticMaskGenerator(self._model, **self.generator_options).generate
             except TypeError as exc:  # a misspelt generator option

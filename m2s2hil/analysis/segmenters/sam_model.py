@@ -8,6 +8,13 @@ a two-block two-way decoder with 2048-wide MLPs and 8 heads). Any other ``SamArc
 built the same way, which is how the tests run the whole path on a tiny randomly initialised
 model without downloading weights.
 
+``architecture_of`` reads the architecture off a checkpoint's tensors (``model_type="auto"``, the
+segmenter's default): the encoder's width from the patch embedding, its depth from the block
+count, its heads from the relative-position tables' width, its global-attention blocks from their
+length (2·grid − 1 against 2·window − 1), the input size from the position embedding and the
+decoder's from its layers. Only the decoder's head count is not in the weights (it only reshapes);
+all three published models use 8, and so does an inferred one.
+
 ``build_sam_model`` differs from segment-anything's own builder in three ways, each on
 purpose: ``torch.load(..., map_location=device, weights_only=True)`` (a checkpoint saved on
 a GPU opens on a CPU; a checkpoint cannot run code when it is opened), a strict load whose
@@ -23,6 +30,7 @@ place when the real one does not import.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -63,6 +71,66 @@ PIXEL_MEAN = (123.675, 116.28, 103.53)
 PIXEL_STD = (58.395, 57.12, 57.375)
 
 
+def _count(state: dict[str, Any], prefix: str) -> int:
+    """How many numbered children ``prefix.<i>.`` the state dict holds."""
+    found = {k[len(prefix):].split(".", 1)[0] for k in state if k.startswith(prefix)}
+    return len({int(i) for i in found if i.isdigit()})
+
+
+def architecture_of(state: dict[str, Any], source: str = "checkpoint") -> SamArchitecture:
+    """The architecture whose modules have the shapes of ``state`` (a SAM state dict): a published
+    one by name when every dimension matches it, else one named ``"inferred"``; a
+    ``SegmenterUnavailableError`` naming the missing tensor when ``state`` is not a SAM model."""
+
+    def shape(key: str) -> tuple[int, ...]:
+        if key not in state or not hasattr(state[key], "shape"):
+            raise SegmenterUnavailableError("sam", f"{source} is not a SAM model: it has no tensor {key!r}")
+        return tuple(int(d) for d in state[key].shape)
+
+    width, _, patch, _ = shape("image_encoder.patch_embed.proj.weight")
+    grid = shape("image_encoder.pos_embed")[1]
+    depth = _count(state, "image_encoder.blocks.")
+    if depth == 0:
+        raise SegmenterUnavailableError("sam", f"{source} is not a SAM model: its encoder has no blocks")
+    tables = [shape(f"image_encoder.blocks.{i}.attn.rel_pos_h") for i in range(depth)]
+    head_dim = tables[0][1]
+    global_blocks = tuple(i for i, (n, _) in enumerate(tables) if n == 2 * grid - 1)
+    windows = {(n + 1) // 2 for n, _ in tables if n != 2 * grid - 1}
+    prompt = shape("image_encoder.neck.0.weight")[0]
+    iou_depth = _count(state, "mask_decoder.iou_prediction_head.layers.")
+    found = SamArchitecture(
+        "inferred", encoder_embed_dim=width, encoder_depth=depth, encoder_num_heads=max(1, width // head_dim),
+        encoder_global_attn_indexes=global_blocks, prompt_embed_dim=prompt, image_size=grid * patch,
+        patch_size=patch, window_size=windows.pop() if len(windows) == 1 else 14,
+        mask_in_chans=shape("prompt_encoder.mask_downscaling.3.weight")[0],
+        decoder_depth=_count(state, "mask_decoder.transformer.layers."),
+        decoder_mlp_dim=shape("mask_decoder.transformer.layers.0.mlp.lin1.weight")[0],
+        iou_head_depth=iou_depth,
+        iou_head_hidden_dim=shape("mask_decoder.iou_prediction_head.layers.0.weight")[0],
+    )
+    for known in SAM_ARCHITECTURES.values():
+        if dataclasses.replace(known, name="inferred") == found:
+            return known
+    return found
+
+
+def read_checkpoint(checkpoint: str | Path, device: str = "cpu") -> dict[str, Any]:
+    """The state dict of a checkpoint file (unwrapped from a training checkpoint's ``"model"``)."""
+    import torch
+
+    path = Path(checkpoint)
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # not a torch file, truncated, or holding more than tensors
+        raise SegmenterUnavailableError("sam", f"cannot read checkpoint {path}: {exc}") from exc
+    if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
+        state = state["model"]  # a training checkpoint that wraps the state dict
+    if not isinstance(state, dict):
+        what = type(state).__name__
+        raise SegmenterUnavailableError("sam", f"checkpoint {path} holds a {what}, not a state dict")
+    return state
+
+
 def build_sam_architecture(arch: SamArchitecture) -> Any:
     """An untrained ``segment_anything.modeling.Sam`` of ``arch`` (needs torch and segment-anything)."""
     import torch
@@ -95,23 +163,21 @@ def build_sam_architecture(arch: SamArchitecture) -> Any:
     )
 
 
-def build_sam_model(arch: SamArchitecture, checkpoint: str | Path, device: str = "cpu") -> Any:
-    """``arch`` with the weights of ``checkpoint`` (a state dict saved by ``torch.save``), on ``device``."""
-    import torch
-
+def build_sam_model(arch: SamArchitecture | None, checkpoint: str | Path, device: str = "cpu"
+                    ) -> tuple[Any, SamArchitecture]:
+    """``arch`` (``None``: read off the checkpoint, :func:`architecture_of`) with the weights of
+    ``checkpoint`` (a state dict saved by ``torch.save``), on ``device``; returns the model and
+    the architecture it was built as."""
     path = Path(checkpoint)
+    state = read_checkpoint(path, device)
+    if arch is None:
+        arch = architecture_of(state, f"checkpoint {path}")
     model = build_sam_architecture(arch)
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except Exception as exc:  # not a torch file, truncated, or holding more than tensors
-        raise SegmenterUnavailableError("sam", f"cannot read checkpoint {path}: {exc}") from exc
-    if isinstance(state, dict) and "model" in state and isinstance(state["model"], dict):
-        state = state["model"]  # a training checkpoint that wraps the state dict
     try:
         model.load_state_dict(state, strict=True)
     except (RuntimeError, TypeError, AttributeError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise SegmenterUnavailableError(
             "sam", f"checkpoint {path} does not fit the {arch.name} architecture ({first}); "
-                   "pass the model_type the weights were trained as") from exc
-    return model.to(device=device).eval()
+                   "pass the model_type the weights were trained as, or 'auto'") from exc
+    return model.to(device=device).eval(), arch
