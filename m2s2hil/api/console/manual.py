@@ -105,9 +105,8 @@ def _forget_on_error(targets: MoveTargets, role: AxisName) -> Iterator[None]:
 
 def _moved(rig: Rig, role: AxisName, target: float) -> dict:
     """The answer to a move just commanded: its target and the axis's read-back (same lock)."""
-    ax = rig.axis(role)
-    return {"axis": role, "target_deg": target, "position_deg": float(ax.position()),
-            "moving": bool(ax.is_moving())}
+    moving, degrees = rig.axis(role).motion()  # one poll: two could pair mid-move with standing
+    return {"axis": role, "target_deg": target, "position_deg": float(degrees), "moving": bool(moving)}
 
 
 @router.post("/rig/axes/{axis}/jog", status_code=202, response_model=cm.MoveOut,
