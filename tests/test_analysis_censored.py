@@ -115,6 +115,18 @@ def test_whole_materials_clipped_are_fitted_apart():
     assert dice_now > 0.9 > dice_before + 0.3
 
 
+def test_a_given_count_bounds_the_censored_fit_too():
+    """With the catalog's count the map has at most that many materials: the censored fit gets
+    what the unclipped fit left (it used to add its own on top: 3 materials for a count of 1 or 2)."""
+    cube, gt, _ = clipped_scene()
+    for given in (1, 2, 3):
+        a = SpectralSegmenter(n_materials=given).analyse(cube)
+        assert a.n_materials == given, given
+    assert SpectralSegmenter(n_materials=1).analyse(cube).censored is None  # no room: not fitted
+    both = SpectralSegmenter(n_materials=2).analyse(cube)
+    assert both.censored is not None and score_clusters(gt, both.labels)[0].macro_dice > 0.6
+
+
 def test_an_unclipped_cube_is_not_touched():
     cube, _ = exposed_scene(0.6, (64, 64), 3)
     on, off = SpectralSegmenter().analyse(cube), SpectralSegmenter(censored=False).analyse(cube)

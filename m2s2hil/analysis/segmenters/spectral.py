@@ -31,13 +31,13 @@ materials", has the comparison that chose them):
    Saturated pixels that no fitted material
    explains as censored data (shape on the bands that held, clip reached on those that did not;
    ``segmenters.censored``) and that have an interior of ≥ ``censored_min_share`` (5 %) of the
-   foreground get a mixture of their own (``censored=True``, default since the fifth pass of
-   issue 23: a material clipped on every pixel otherwise joined the dim one, K = 1 at 50 ms in
-   strong light); ``SpectralSegmentation.censored`` says which. The homogeneity angle of step 3 becomes at
-   least 1.5 × the cube's median neighbour angle, so a dim cube keeps fit pixels (with a fixed 3°
-   none passed at 4 % peak and the fit fell back to every pixel, which over-splits). ``white``
-   (per band) divides the cube by the white reference first. ``robust=False``: the issue-15
-   segmenter, unchanged.
+   foreground get a mixture of their own, within what a given count leaves (``censored=True``,
+   default since the fifth pass of issue 23: a material clipped on every pixel otherwise joined
+   the dim one, K = 1 at 50 ms in strong light); ``SpectralSegmentation.censored`` says which.
+   The homogeneity angle of step 3 becomes at least 1.5 × the cube's median neighbour angle, so a
+   dim cube keeps fit pixels (with a fixed 3° none passed at 4 % peak and the fit fell back to
+   every pixel, which over-splits). ``white`` (per band) divides the cube by the white reference
+   first. ``robust=False``: the issue-15 segmenter, unchanged.
 1c. Denoising (robust only): where the median neighbour angle exceeds ``pool_target_deg`` (2°, about
    its value at the 60 %-peak reference, so the reference is untouched) the cube should average
    n = ⌈(angle / 2°)²⌉ pixels (the mean of n spectra has 1/√n of the noise). ``denoise="guided"``
@@ -520,13 +520,13 @@ class SpectralSegmenter:
             value -= 2.0 * float(np.sum(xlogy(z, z)))
         return value
 
-    def _select(self, sample: np.ndarray, *, given: bool = True
+    def _select(self, sample: np.ndarray, *, given: bool = True, most: int | None = None
                 ) -> tuple[GaussianMixture | BayesianGaussianMixture, dict[int, float]]:
         """The mixture for ``sample``: the given count (``n_materials``, unless ``given`` is false),
-        the variational fit, or the lowest ``criterion`` over 1..``max_materials`` components
-        (stopping after ``bic_patience`` counts without improvement); returns it with the criterion
-        per count tried."""
-        upper = min(self.max_materials, max(1, sample.shape[0] - 1))
+        the variational fit, or the lowest ``criterion`` over 1..``max_materials`` components (or
+        ``most``, if fewer; stopping after ``bic_patience`` counts without improvement); returns it
+        with the criterion per count tried."""
+        upper = min(self.max_materials, max(1, sample.shape[0] - 1), most or self.max_materials)
         bic: dict[int, float] = {}
         best: GaussianMixture | BayesianGaussianMixture | None = None
         if given and self.n_materials is not None:  # the count is given (e.g. the catalog's): no selection
@@ -647,7 +647,9 @@ class SpectralSegmenter:
         sat = rel.saturated & fg
         good = fg & ~rel.unreliable
         n = int(labels.max())
-        if n == 0 or not good.any():
+        # a count given for the build bounds the whole map: the censored fit gets what is left
+        room = None if self.n_materials is None else self.n_materials - n
+        if n == 0 or not good.any() or (room is not None and room < 1):
             return labels, None
         means = np.stack([arr[:, (labels == k) & good].mean(axis=1) if np.any((labels == k) & good)
                           else np.zeros(arr.shape[0]) for k in range(1, n + 1)])
@@ -665,7 +667,7 @@ class SpectralSegmenter:
         if sample.shape[0] > self.sample_size:
             rng = np.random.default_rng(self.seed)
             sample = sample[rng.choice(sample.shape[0], self.sample_size, replace=False)]
-        gm, _ = self._select(sample, given=False)  # a count given for the build is not theirs
+        gm, _ = self._select(sample, given=False, most=room)  # their own count, within the room
         groups = self._groups(gm, arr.shape[0])
         resp = gm.predict_proba(feats[:, un].T) @ groups
         comp = resp.argmax(axis=1)
