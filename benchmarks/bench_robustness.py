@@ -2,10 +2,11 @@
 
 Each cell renders the simulator's frames (``analysis.study.simframes.simulated_frames``) of
 3 satellites × 3 builds at two views (E1, azimuths 30° and 200°) under one condition and segments them with
-three variants of the segmenter (``VARIANTS``): ``before`` (``robust=False``, issue 15),
-``fifth`` (the fifth pass of issue 23: the default without the sixth pass's dim regions,
-near-black test on the denoised cube and average-linkage merging), ``single`` (the default with
-the single-linkage merging of before) and ``after`` (the default).
+four variants of the segmenter (``VARIANTS``): ``before`` (``robust=False``, issue 15),
+``fifth`` (the fifth pass of issue 23: without the sixth pass's dim regions, near-black test on
+the denoised cube and average-linkage merging, and without the seventh's tie-break), ``sixth``
+(the default without the seventh pass's spatial tie-break of near-tied counts, ``tie_break=0``)
+and ``after`` (the default).
 Per cell and variant: the share of frames with K within ±1 of the visible materials, mean
 K − true, mean macro Dice and its difference to the reference cell (peak 60 %, weak light, 1024²
 sensor: 256² cubes, the size of the issue-15 model-selection study; at 128² cubes the
@@ -56,8 +57,8 @@ GOAL_CELLS = ("peak-5%", "peak-10%", "peak-30%", "peak-60%", "peak-100%", "peak-
 # variant -> SpectralSegmenter keywords
 VARIANTS: dict[str, dict[str, Any]] = {
     "before": {"robust": False},
-    "fifth": {"dark_after_denoise": False, "dim_radius": 0, "merge_linkage": "single"},
-    "single": {"merge_linkage": "single"},
+    "fifth": {"dark_after_denoise": False, "dim_radius": 0, "merge_linkage": "single", "tie_break": 0},
+    "sixth": {"tie_break": 0},
     "after": {},
 }
 
@@ -115,14 +116,14 @@ def summarise(cells: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
 
 
 def markdown(summary: list[dict[str, Any]]) -> str:
-    lines = ["| cell | K ±1 before / fifth / single / after | Dice before / fifth / single / after |"
-             " ΔDice vs 60 % fifth / single / after | supervised ΔDice QDA / centroid |"
+    lines = ["| cell | K ±1 before / fifth / sixth / after | Dice before / fifth / sixth / after |"
+             " ΔDice vs 60 % fifth / sixth / after | supervised ΔDice QDA / centroid |"
              " CPU s/frame fifth / after |"
              " K − true per frame after |",
              "|---|---|---|---|---|---|---|"]
     by = {(s["cell"], s["variant"]): s for s in summary}
     for cell in dict.fromkeys(s["cell"] for s in summary):
-        b, p, o, a = (by[(cell, v)] for v in ("before", "fifth", "single", "after"))
+        b, p, o, a = (by[(cell, v)] for v in ("before", "fifth", "sixth", "after"))
         def joined(key: str, fmt: str, rows: tuple[dict[str, Any], ...]) -> str:
             return " / ".join(format(x[key], fmt) for x in rows)
 
@@ -159,8 +160,9 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str) -> None:
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(14, 7), sharex=True)
     for off, v, label, colour in ((-0.3, "before", "before (robust=False)", "#cccccc"),
                                   (-0.1, "fifth", "fifth pass (censored fit of saturated pixels)", "#c6dbef"),
-                                  (0.1, "single", "dim regions, near-black denoised", "#6baed6"),
-                                  (0.3, "after", "now (and average-linkage merging)", "#08519c")):
+                                  (0.1, "sixth", "sixth (dim regions, near-black denoised, average linkage)",
+                                   "#6baed6"),
+                                  (0.3, "after", "now (and near-tied counts settled by the map)", "#08519c")):
         ax1.bar(x + off, [by[(c, v)]["within_1"] for c in cells], 0.2, label=label, color=colour)
         ax2.bar(x + off, [by[(c, v)]["dice_delta"] for c in cells], 0.2, label=label, color=colour)
     goal = [i for i, c in enumerate(cells) if c in GOAL_CELLS]

@@ -72,7 +72,9 @@ materials", has the comparison that chose them):
    catalog, named ``spectral-catalog-k``). A single-band cube: the foreground is one material.
    A fit whose component collapses (sklearn's "ill-defined empirical covariance") is refitted
    with 10×, 100×, 1000× ``reg_covar``; a count that still fails ends the sweep, and if the
-   fewest components fail, ``AnalysisInputError("reg_covar", …)`` says what to change.
+   fewest components fail, ``AnalysisInputError("reg_covar", …)`` says what to change. Robust:
+   a larger count within ``tie_break`` (1.0) component penalties of the best is a near tie, won
+   by the largest whose label map has more materials and stays as coherent (``segmenters.ties``).
 5. Clean-up: components whose unit mean spectra (brightness coordinate left out) lie within
    ``merge_angle_deg`` (1.5°) merge. Robust (``merge_linkage="average"``, sixth pass of issue 23):
    by average linkage, two groups joining while the mean angle between their components is under
@@ -135,6 +137,7 @@ from m2s2hil.analysis.segmenters.normalise import (
     reliability,
     superpixel_means,
 )
+from m2s2hil.analysis.segmenters.ties import COHERENCE_TOL, coherence, component_penalty, near_ties
 from m2s2hil.catalog import load_catalog
 
 if TYPE_CHECKING:  # scikit-learn loads with the first fit (2 s of CPU a process that never fits)
@@ -378,7 +381,12 @@ class SpectralSegmenter:
         dark_after_denoise: bool = True,
         dim_radius: int = 2,
         merge_linkage: MergeLinkage | None = None,
+        tie_break: float | None = None,
     ) -> None:
+        if tie_break is not None and not tie_break >= 0:
+            problem = f"must be ≥ 0 (0 = the sweep decides) or None, got {tie_break}"
+            raise AnalysisInputError("tie_break", problem)
+        self.tie_break = None if tie_break is None else float(tie_break)
         if merge_linkage not in (None, "single", "average"):
             problem = f"expected 'single' or 'average', got {merge_linkage!r}"
             raise AnalysisInputError("merge_linkage", problem)
@@ -520,12 +528,13 @@ class SpectralSegmenter:
             value -= 2.0 * float(np.sum(xlogy(z, z)))
         return value
 
-    def _select(self, sample: np.ndarray, *, given: bool = True, most: int | None = None
+    def _select(self, sample: np.ndarray, *, given: bool = True, most: int | None = None,
+                fits: dict[int, GaussianMixture | BayesianGaussianMixture] | None = None,
                 ) -> tuple[GaussianMixture | BayesianGaussianMixture, dict[int, float]]:
         """The mixture for ``sample``: the given count (``n_materials``, unless ``given`` is false),
         the variational fit, or the lowest ``criterion`` over 1..``max_materials`` components (or
         ``most``, if fewer; stopping after ``bic_patience`` counts without improvement); returns it
-        with the criterion per count tried."""
+        with the criterion per count tried (and each count's mixture in ``fits``, when given)."""
         upper = min(self.max_materials, max(1, sample.shape[0] - 1), most or self.max_materials)
         bic: dict[int, float] = {}
         best: GaussianMixture | BayesianGaussianMixture | None = None
@@ -543,6 +552,8 @@ class SpectralSegmenter:
                         raise
                     break  # more components than the sample can hold apart: the count so far stands
                 bic[n] = self._score(gm, sample)
+                if fits is not None:
+                    fits[n] = gm
                 if best is None or bic[n] < bic[best_n]:
                     best, best_n, stale = gm, n, 0
                 else:
@@ -619,6 +630,29 @@ class SpectralSegmenter:
         first[ids[::-1]] = np.arange(ids.size)[::-1]
         rows = feats.reshape(feats.shape[0], -1)[:, first[good]].T
         return out, unit_p, energy_p, feats, fit, rows
+
+    def _assign(self, gm: GaussianMixture | BayesianGaussianMixture, sample: np.ndarray,
+                spectra: np.ndarray, fg: np.ndarray, rel: Reliability | None, noise_deg: float,
+                n_spectral: int) -> np.ndarray:
+        """Each foreground pixel's group (0-based) under ``gm``: components merged into groups,
+        the group of the largest summed posterior, groups without an interior dropped."""
+        limit = None
+        if rel is not None and self.merge_noise > 0 and np.isfinite(noise_deg):
+            limit = self._merge_limit(gm, sample, noise_deg, n_spectral)
+        groups = self._groups(gm, n_spectral, limit)
+        resp = gm.predict_proba(spectra) @ groups  # (n_fg, n_groups) summed posteriors
+        comp = resp.argmax(axis=1)
+        if rel is not None and self.min_core_fraction > 0:  # a material has an interior
+            keep = cored_groups(comp, fg, resp.shape[1], self.min_core_fraction * int(fg.sum()))
+            if not keep.all():
+                comp = resp[:, keep].argmax(axis=1)
+        return comp
+
+    def _tie_break(self) -> float:
+        """``tie_break``, or by default one component's penalty when robust (0: the sweep decides)."""
+        if self.tie_break is not None:
+            return self.tie_break
+        return 1.0 if self.robust else 0.0
 
     def _merge_limit(self, gm: GaussianMixture | BayesianGaussianMixture, sample: np.ndarray,
                      noise_deg: float, n_spectral: int) -> np.ndarray:
@@ -774,18 +808,21 @@ class SpectralSegmenter:
         sample = pool
         if pool.shape[0] > self.sample_size:
             sample = pool[rng.choice(pool.shape[0], self.sample_size, replace=False)]
-        best, bic = self._select(sample)
-        limit = None
-        if rel is not None and self.merge_noise > 0 and np.isfinite(noise_deg):
-            limit = self._merge_limit(best, sample, noise_deg / np.sqrt(2.0 * per), unit.shape[0])
-        groups = self._groups(best, unit.shape[0], limit)
-        resp = best.predict_proba(spectra) @ groups  # (n_fg, n_groups) summed posteriors
-        comp = resp.argmax(axis=1)
-        if rel is not None and self.min_core_fraction > 0:  # a material has an interior
-            keep = cored_groups(comp, fg, resp.shape[1], self.min_core_fraction * n_fg)
-            if not keep.all():
-                groups, resp = groups[:, keep], resp[:, keep]
-                comp = resp.argmax(axis=1)
+        fits: dict[int, GaussianMixture | BayesianGaussianMixture] = {}
+        best, bic = self._select(sample, fits=fits)
+        noise_fit = noise_deg / np.sqrt(2.0 * per)
+        comp = self._assign(best, sample, spectra, fg, rel, noise_fit, unit.shape[0])
+        if self._tie_break() > 0 and len(fits) > 1:  # near-tied larger counts: the map decides
+            margin = self._tie_break() * component_penalty(sample.shape[1], self.covariance_type,
+                                                           sample.shape[0])
+            shown = np.zeros(fg.shape, dtype=np.int32)
+            shown[fg] = comp + 1
+            floor, used = coherence(shown) - COHERENCE_TOL, len(np.unique(comp))
+            for n in near_ties(bic, best.n_components, margin):
+                other = self._assign(fits[n], sample, spectra, fg, rel, noise_fit, unit.shape[0])
+                shown[fg] = other + 1
+                if len(np.unique(other)) > used and coherence(shown) >= floor:
+                    comp, used = other, len(np.unique(other))
         labels[fg] = comp + 1
         labels = ranked(labels)  # ids by decreasing size, ties by component order: reproducible
         censored: np.ndarray | None = None
