@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 from scipy import ndimage
+from sim_frame import one_frame
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.segmenters.foreground import DIM_MIN_PIXELS, dim_regions, foreground_mask
@@ -17,7 +18,6 @@ from m2s2hil.analysis.segmenters.spectral import (
     average_linkage_groups,
     single_linkage_groups,
 )
-from m2s2hil.analysis.study.simframes import simulated_frames
 
 
 def noisy_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -70,8 +70,7 @@ def test_dim_regions_off_and_degenerate_masks():
 
 def hubble_b2(**conditions: Any) -> Any:
     """Hubble B2 at E1, 30°, 256² cube, under ``conditions`` (``simulated_frames`` keywords)."""
-    return next(iter(simulated_frames(satellites=["hubble"], builds=["B2"], elevations=["E1"],
-                                      azimuths=[30.0], size=1024, **conditions)))
+    return one_frame("hubble", "B2", size=1024, **conditions)
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sim_frame import one_frame
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.segmenters.normalise import (
@@ -19,7 +20,7 @@ from m2s2hil.analysis.segmenters.normalise import (
     superpixel_means,
 )
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, foreground_mask
-from m2s2hil.analysis.study.simframes import simulated_frames, visible_materials
+from m2s2hil.analysis.study.simframes import visible_materials
 from m2s2hil.analysis.study.synthetic import exposed_scene
 
 
@@ -30,8 +31,7 @@ def n_segments(cube: np.ndarray, **options: object) -> int:
 @pytest.fixture(scope="module")
 def dim_single_material():
     # Voyager B1 (silver only), weak light, exposed to 4 % of full scale, 64² cube
-    return next(iter(simulated_frames(satellites=["voyager"], builds=["B1"], lightings=["weak"],
-                                      elevations=["E1"], azimuths=[30.0], size=256, peak_fraction=0.04)))
+    return one_frame("voyager", "B1", size=256, peak_fraction=0.04)
 
 
 def test_single_material_build_at_4_percent_peak_is_one_segment(dim_single_material):

@@ -7,13 +7,14 @@ import math
 
 import numpy as np
 import pytest
+from sim_frame import one_frame
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.metrics.scores import score_clusters
 from m2s2hil.analysis.segmenters import ties
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
 from m2s2hil.analysis.segmenters.ties import coherence, component_penalty, near_ties
-from m2s2hil.analysis.study.simframes import simulated_frames, visible_materials
+from m2s2hil.analysis.study.simframes import visible_materials
 from m2s2hil.analysis.study.synthetic import synthetic_scene
 
 
@@ -42,8 +43,7 @@ def test_one_components_penalty_and_the_near_ties():
 @pytest.fixture(scope="module")
 def voyager_b3_at_10_percent():
     # Voyager B3 at 10 % of full scale: 8 visible materials, 6 of them on parts of 100-500 pixels
-    return next(iter(simulated_frames(satellites=["voyager"], builds=["B3"], elevations=["E1"],
-                                      lightings=["weak"], azimuths=[30.0], size=1024, peak_fraction=0.1)))
+    return one_frame("voyager", "B3", size=1024, peak_fraction=0.1)
 
 
 def test_a_near_tie_goes_to_the_count_whose_map_stays_coherent(voyager_b3_at_10_percent):

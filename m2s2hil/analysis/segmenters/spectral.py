@@ -812,17 +812,21 @@ class SpectralSegmenter:
         best, bic = self._select(sample, fits=fits)
         noise_fit = noise_deg / np.sqrt(2.0 * per)
         comp = self._assign(best, sample, spectra, fg, rel, noise_fit, unit.shape[0])
-        if self._tie_break() > 0 and len(fits) > 1:  # near-tied larger counts: the map decides
+        ties: list[int] = []
+        if self._tie_break() > 0 and fits:
             margin = self._tie_break() * component_penalty(sample.shape[1], self.covariance_type,
                                                            sample.shape[0])
+            ties = near_ties(bic, best.n_components, margin)
+        if ties:  # near-tied larger counts: the map decides
             shown = np.zeros(fg.shape, dtype=np.int32)
             shown[fg] = comp + 1
             floor, used = coherence(shown) - COHERENCE_TOL, len(np.unique(comp))
-            for n in near_ties(bic, best.n_components, margin):
+            for n in ties:
                 other = self._assign(fits[n], sample, spectra, fg, rel, noise_fit, unit.shape[0])
                 shown[fg] = other + 1
-                if len(np.unique(other)) > used and coherence(shown) >= floor:
-                    comp, used = other, len(np.unique(other))
+                found = len(np.unique(other))
+                if found > used and coherence(shown) >= floor:
+                    comp, used = other, found
         labels[fg] = comp + 1
         labels = ranked(labels)  # ids by decreasing size, ties by component order: reproducible
         censored: np.ndarray | None = None
