@@ -545,7 +545,7 @@ class GrblAxis(RotaryAxisBase):
         self.ctl.command(line)
 
     def position(self) -> float:
-        return (self.ctl.axis_position(self.letter) - self.origin_units) / self.units_per_degree
+        return self._degrees_in(self.ctl.status())
 
     def stop(self) -> None:
         self.ctl.stop()
@@ -555,7 +555,11 @@ class GrblAxis(RotaryAxisBase):
 
     def motion(self) -> tuple[bool, float]:
         st = self.ctl.status()
-        return st.moving, (self.ctl.position_in(st, self.letter) - self.origin_units) / self.units_per_degree
+        return st.moving, self._degrees_in(st)
+
+    def _degrees_in(self, st: StatusReport) -> float:
+        """This axis's position in a status report, in degrees from its origin."""
+        return (self.ctl.position_in(st, self.letter) - self.origin_units) / self.units_per_degree
 
     def _motion_state(self) -> tuple[bool, float, str]:
         """One ``?``: anything but Idle is still on its way (Hold:0 too, and it makes no progress)."""
@@ -565,7 +569,7 @@ class GrblAxis(RotaryAxisBase):
                 f"{self.name}: controller in Alarm state during a move", code=self.ctl.last_alarm,
                 device=self.ctl.device, command="?",
             )
-        degrees = (self.ctl.position_in(st, self.letter) - self.origin_units) / self.units_per_degree
+        degrees = self._degrees_in(st)
         return st.state != "Idle", degrees, st.state_text
 
     def wait_until_idle(self, timeout: float) -> None:
