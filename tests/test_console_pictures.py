@@ -97,6 +97,29 @@ def quick_live_stop(client) -> None:
     client.app.state.console.live.idle_stop_s = 0.0
 
 
+
+# what the frame viewer drew over the ten bands' label bars, with the canvas's pixels there
+BAND_LABELS_JS = """(() => {
+    const f = window.m2s2hilPictures.fv, cv = document.getElementById('fv-canvas');
+    const dpr = window.devicePixelRatio || 1, ctx = cv.getContext('2d');
+    const lit = f.bandLabels.map(l => {
+        const px = ctx.getImageData(l.x * dpr, l.y * dpr, l.w * dpr, (l.px + 4) * dpr).data;
+        let text = 0, dark = 0;
+        for (let i = 0; i < px.length; i += 4) {
+            if (px[i] > 200 && px[i + 1] > 200 && px[i + 2] > 200) text++;
+            else if (px[i] < 80 && px[i + 1] < 80 && px[i + 2] < 80) dark++; }
+        return [text, dark / (px.length / 4)]; });
+    return [f.bandLabels, f.bandsNm, lit]; })()"""
+
+
+def assert_band_labels_drawn(page) -> None:
+    """Every tile's wavelength is drawn at ≥ 11 px, as white text on a dark box where the viewer
+    says it drew it (not the light band image under it)."""
+    drawn, nm, lit = page.evaluate(BAND_LABELS_JS)
+    assert nm and len(nm) == 10 and [label["text"] for label in drawn] == [f"{v:g} nm" for v in nm], drawn
+    assert all(label["px"] >= 11 for label in drawn), drawn
+    assert all(text > 5 and dark > 0.4 for text, dark in lit), lit
+
 def test_stored_spectrum_is_the_dark_subtracted_band_means(d) -> None:
     n = d.idx["first"]
     # one point: the mosaic cell holding it, every band's own pixels
@@ -301,6 +324,7 @@ def test_pictures_in_the_browser(d, new_page) -> None:
         page.select_option("#fv-mode", "bands")
         page.wait_for_function("window.m2s2hilPictures.fv.bandsGeom !== null")
         shot(page, "console_ten_bands.png")
+        assert_band_labels_drawn(page)
         page.click("#fv-close")
         # the export's progress bar (what console.js's export loop shows for each polled job)
         bar = page.evaluate("""() => { const d = document.createElement('div');
@@ -364,6 +388,10 @@ def test_pictures_in_the_browser(d, new_page) -> None:
             return [f.tx, cv.clientWidth - f.tx - f.img.naturalWidth * k,
                     f.ty, cv.clientHeight - f.ty - f.img.naturalHeight * k]; })()""")
         assert abs(placed[0] - placed[1]) <= 1 and abs(placed[2] - placed[3]) <= 1, placed
+        # fitted to the phone, bands.png's own labels are a few pixels tall: the viewer draws every
+        # tile's wavelength again at a readable size
+        assert page.evaluate("window.m2s2hilPictures.fv.mode") == "bands"
+        assert_band_labels_drawn(page)
         # a session-end toast spans the phone's width: the viewer's chart scrolls up from under it
         page.evaluate("toast('session s-test completed', false)")
         page.locator(".pic-viewer").evaluate("v => { v.scrollTop = v.scrollHeight; }")

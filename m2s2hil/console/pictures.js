@@ -185,7 +185,7 @@ const pictures = (() => {
   // One overlay for every view: the frame's preview or its ten band images, zoom (wheel, pinch,
   // buttons) and pan (drag), a click or a drag for the spectrum beside it.
   const fv = { sid: null, n: null, items: [], img: null, mode: "preview", scale: 1, tx: 0, ty: 0, sensor: null,
-    region: null, pointers: new Map(), panel: null, bandsGeom: null, labels: null };
+    region: null, pointers: new Map(), panel: null, bandsGeom: null, labels: null, bandsNm: null, bandLabels: [] };
   function viewerSetup() {
     const ov = mk("div", { id: "frame-viewer", class: "overlay pic-overlay", role: "dialog", "aria-modal": "true", "aria-labelledby": "fv-title" });
     ov.hidden = true;
@@ -443,6 +443,8 @@ const pictures = (() => {
       for (const [ox, oy, bw, bh] of imageBoxes()) ctx.drawImage(fv.labels, ox, oy, bw, bh);
       ctx.globalAlpha = 1;
     }
+    bandLabels(ctx, k, dpr);  // in screen pixels, under the region's outline
+    ctx.setTransform(dpr * k, 0, 0, dpr * k, dpr * fv.tx, dpr * fv.ty);
     const g = fv.region, s = fv.sensor;
     if (g && s) {  // the spectrum's region: on the image, or on every band's tile
       ctx.strokeStyle = "#ffe066"; ctx.lineWidth = 2 / k;
@@ -455,6 +457,25 @@ const pictures = (() => {
     ctx.fillStyle = "rgba(0,0,0,.55)"; ctx.fillRect(0, H - 20 * dpr, 92 * dpr, 20 * dpr);
     ctx.fillStyle = "#fff"; ctx.font = `${11 * dpr}px system-ui, sans-serif`; ctx.textBaseline = "middle";
     ctx.fillText(`zoom ×${fv.scale.toFixed(fv.scale < 10 ? 1 : 0)}`, 6 * dpr, H - 10 * dpr);
+  }
+  // bands.png's own labels are 11 px at full size: fitted to a phone they shrink to 3-6 px. While a
+  // label bar shows smaller than the text needs, each tile's wavelength is drawn again over its bar
+  // in screen pixels (fv.bandLabels: what was drawn, for the browser test)
+  const BAND_LABEL_PX = 12;
+  function bandLabels(ctx, k, dpr) {
+    fv.bandLabels = [];
+    const t = fv.bandsGeom, nm = fv.bandsNm;
+    if (fv.mode !== "bands" || !t || !nm || t.bar * k >= BAND_LABEL_PX + 4) return;
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.font = `${BAND_LABEL_PX * dpr}px system-ui, sans-serif`; ctx.textBaseline = "top"; ctx.textAlign = "left";
+    imageBoxes().forEach(([ox, oy, bw], b) => {
+      if (nm[b] == null) return;
+      const x = fv.tx + ox * k, y = fv.ty + (oy - t.bar) * k, text = `${nm[b]} nm`;
+      const w = Math.min(ctx.measureText(text).width / dpr + 6, bw * k);
+      ctx.fillStyle = "rgba(0,0,0,.75)"; ctx.fillRect(x * dpr, y * dpr, w * dpr, (BAND_LABEL_PX + 4) * dpr);
+      ctx.fillStyle = "#fff"; ctx.fillText(text, (x + 3) * dpr, (y + 2) * dpr, (w - 4) * dpr);
+      fv.bandLabels.push({ text, x, y, w, px: BAND_LABEL_PX });
+    });
   }
   // where the sensor's image is on the drawn picture: the whole preview, or each band's tile
   function imageBoxes() {
@@ -495,7 +516,7 @@ const pictures = (() => {
       }
       const s = await api("GET", `/sessions/${fv.sid}/frames/${fv.n}/spectrum?x=${g.x}&y=${g.y}&w=${g.w}&h=${g.h}`);
       if (want !== [fv.sid, fv.n].join("/")) return;
-      fv.sensor = s.sensor; fv.region = s.region;
+      fv.sensor = s.sensor; fv.region = s.region; fv.bandsNm = s.bands_nm;
       fv.panel.show(s); draw();
     } catch (e) { fv.panel.clear(e.message); }
   }
