@@ -15,7 +15,9 @@ frame it prints K, the visible materials, Dice, the share of the object masked a
 the share of the object outside the foreground and the pool size (``--frames``). Per cell also the
 supervised per-pixel references (``analysis.metrics.bounds``: nearest true class mean and QDA on the
 frame's truth, the segmenter's features): where they fall as far as the segmenter, the pixels no
-longer tell the materials apart; where they hold, the shortfall is the segmenter's.
+longer tell the materials apart; where they hold, the shortfall is the segmenter's. Two views
+are few: ``bench_robustness_wide.py`` measures the default on the goal's cells over the whole
+sweep (324 frames a cell).
 
 Run (minutes on 2 cores; results to docs/images/robustness.{json,png})::
 
