@@ -63,6 +63,15 @@ materials", has the comparison that chose them):
    still has fit pixels. Rim pixels (object + backdrop) and material boundaries (two spectra; the
    super-pixel grid also samples the bands at slightly different places) stay out of the fit:
    fitted on every pixel (``"all"``, the old default), BIC spent components on those blends.
+3b. Blends inside the object (``edge_step`` s > 0, robust only; ninth pass of issue 23; off by
+   default, set by ``spectral-sweep``): pixels darker than a 4-neighbour by more than a factor
+   e^s on the cube as captured (``darker_than_a_neighbour``) leave the fit too. A one-pixel gap
+   between two of ISS's solar-panel cells shows the backdrop; the super-pixels beside it sample
+   each band at another place of the 4 × 4 mosaic, so their spectra are garbled (a band at 0 %
+   of the energy, the next at 45 %), and BIC fitted them as materials of their own (ISS B1, one
+   material, split in three along the gaps). The guided filter, which follows spectral shape,
+   does not smooth them away. ``blend_filter_step`` (off): blends darker by e^step are also kept
+   out of the guided filter's averages.
 4. Count: ``sklearn.mixture.GaussianMixture`` with 1..``max_materials`` (12) components on at most
    ``sample_size`` fit pixels (``np.random.default_rng(seed)``); the lowest ``criterion`` wins:
    ``"bic"`` (default) or ``"icl"`` (BIC + twice the classification entropy). The sweep stops
@@ -116,8 +125,9 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import TYPE_CHECKING, Literal, TypeAlias, TypeVar
 
 import numpy as np
 from scipy import ndimage
@@ -151,6 +161,7 @@ Features = Literal["unit", "log-chromaticity"]
 Denoise = Literal["guided", "slic"]
 MergeLinkage = Literal["single", "average"]
 M = TypeVar("M", "GaussianMixture", "BayesianGaussianMixture")
+Mixture: TypeAlias = "GaussianMixture | BayesianGaussianMixture"
 
 
 @dataclass(frozen=True)
@@ -167,6 +178,27 @@ class SpectralSegmentation:
     fit: np.ndarray | None = None  # bool (H, W): the pixels the mixture was fitted on
     pooled: int = 1  # pixels the cube was averaged over before the fit (filter or superpixel; 1 = none)
     censored: np.ndarray | None = None  # bool (H, W): saturated pixels no material explained, fitted apart
+    shared: bool = False  # labelled with a mixture given to ``analyse`` (a sweep's), not its own
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """One cube made ready for the mixture (``SpectralSegmenter._prepare``)."""
+
+    arr: np.ndarray  # the cube the features come from (white-normalised, used bands, denoised)
+    fg: np.ndarray
+    threshold: float
+    rel: Reliability | None
+    unit: np.ndarray
+    feats: np.ndarray
+    spectra: np.ndarray  # (n_fg, features): every foreground pixel's features
+    fit: np.ndarray  # bool (H, W): the fit pixels
+    sample: np.ndarray  # (n, features): the rows the mixture is fitted on
+    per: int
+    noise_deg: float
+    raw_noise_deg: float
+    averaged: int
+    n_fg: int
 
 
 MIN_FIT_PIXELS = 50
@@ -209,6 +241,42 @@ def homogeneous_pixels(
         return inner & (cos_min > np.cos(np.radians(max_angle_deg)))
     limit = np.radians(np.minimum(max_angle_deg * scale, 89.0))
     return inner & (np.arccos(np.clip(cos_min, -1.0, 1.0)) < limit)
+
+
+def darker_than_a_neighbour(energy: np.ndarray, step: float) -> np.ndarray:
+    """(H, W) bool: pixels whose energy is below a 4-neighbour's by more than a factor e^step.
+
+    The dark side of a brightness edge is where a super-pixel cell holds part object, part
+    something darker (a one-pixel gap between ISS's solar-panel cells, showing the backdrop): its
+    bands are sampled at different places of the 4 × 4 mosaic cell, so each sees another share of
+    the two and the spectrum's shape is garbled (a band 0 % and another 45 % of the energy at
+    60 % peak). Such cells are blends, as the object's rim is; the rim is left out of the fit by
+    eroding the foreground, and these by this test. Only the darker side: the brightest pixels of
+    a part two or three pixels wide (Voyager's booms) are darker than none of their neighbours."""
+    log_e = np.log(np.maximum(energy, 1e-12 * max(float(energy.max()), 1e-12)))
+    brightest = log_e.copy()
+    brightest[1:] = np.maximum(brightest[1:], log_e[:-1])
+    brightest[:-1] = np.maximum(brightest[:-1], log_e[1:])
+    brightest[:, 1:] = np.maximum(brightest[:, 1:], log_e[:, :-1])
+    brightest[:, :-1] = np.maximum(brightest[:, :-1], log_e[:, 1:])
+    return brightest - log_e > step
+
+
+def garbled_blends(energy: np.ndarray, unit: np.ndarray, step: float, min_angle_deg: float) -> np.ndarray:
+    """(H, W) bool: pixels darker than a 4-neighbour by more than e^step *and* more than
+    ``min_angle_deg`` from that neighbour's spectral shape: blends whose shape the mosaic garbled,
+    not the shading of a surface turning from the light (which changes brightness, not shape)."""
+    log_e = np.log(np.maximum(energy, 1e-12 * max(float(energy.max()), 1e-12)))
+    cos_max = np.cos(np.radians(min_angle_deg))
+    found = np.zeros(energy.shape, dtype=bool)
+    for here, there in (((slice(1, None), slice(None)), (slice(None, -1), slice(None))),
+                        ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+                        ((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                        ((slice(None), slice(None, -1)), (slice(None), slice(1, None)))):
+        darker = log_e[there] - log_e[here] > step
+        cos = np.einsum("bhw,bhw->hw", unit[(slice(None), *here)], unit[(slice(None), *there)])
+        found[here] |= darker & (cos < cos_max)
+    return found
 
 
 def relabel_saturated(labels: np.ndarray, cube: np.ndarray, clipped: np.ndarray, saturated: np.ndarray
@@ -383,7 +451,17 @@ class SpectralSegmenter:
         dim_radius: int = 2,
         merge_linkage: MergeLinkage | None = None,
         tie_break: float | None = None,
+        edge_step: float = 0.0,
+        blend_filter_step: float = 0.0,
+        blend_filter_angle: float = 3.0,
     ) -> None:
+        for key, step in (("edge_step", edge_step), ("blend_filter_step", blend_filter_step),
+                          ("blend_filter_angle", blend_filter_angle)):
+            if not (isinstance(step, int | float) and step >= 0 and np.isfinite(step)):
+                raise AnalysisInputError(key, f"must be a finite number ≥ 0 (0 = no edge test), got {step!r}")
+        self.edge_step = float(edge_step)
+        self.blend_filter_step = float(blend_filter_step)
+        self.blend_filter_angle = float(blend_filter_angle)
         if tie_break is not None and not tie_break >= 0:
             problem = f"must be ≥ 0 (0 = the sweep decides) or None, got {tie_break}"
             raise AnalysisInputError("tie_break", problem)
@@ -725,16 +803,44 @@ class SpectralSegmenter:
         log_e = np.log(np.maximum(energy, 1e-12))[np.newaxis]
         return unit, energy, np.concatenate([unit, self.brightness_weight * log_e])
 
-    def analyse(self, cube: object, *, saturated: np.ndarray | None = None) -> SpectralSegmentation:
+    def analyse(self, cube: object, *, saturated: np.ndarray | None = None,
+                mixture: Mixture | None = None) -> SpectralSegmentation:
         """Segment ``cube`` and return the labels with the fit's diagnostics; ``saturated``: the
-        processor's clipping mask (H, W), used with the segmenter's own plateau test."""
+        processor's clipping mask (H, W), used with the segmenter's own plateau test. ``mixture``: a
+        mixture fitted elsewhere (``segmenters.sweep``: on a whole sweep's fit pixels) labels the
+        cube instead of one selected on its own pixels, when its features have this cube's width
+        (the same bands used); otherwise the cube's own is selected (``shared`` says which)."""
         arr = as_cube(cube)
-        if self.blas_threads is None:
-            return self._analyse(arr, saturated)
-        with threadpool_limits(limits=self.blas_threads):
-            return self._analyse(arr, saturated)
+        with self._threads():
+            prep = self._prepare(arr, saturated)
+            if isinstance(prep, SpectralSegmentation):
+                return prep
+            return self._label(prep, mixture)
 
-    def _analyse(self, arr: np.ndarray, saturated: np.ndarray | None = None) -> SpectralSegmentation:
+    def fit_sample(self, cube: object, *, saturated: np.ndarray | None = None) -> np.ndarray | None:
+        """The rows ``(n, features)`` the mixture would be fitted on for ``cube`` (its fit pixels'
+        features, at most ``sample_size``); None for a cube without foreground or with one band."""
+        arr = as_cube(cube)
+        with self._threads():
+            prep = self._prepare(arr, saturated)
+        return None if isinstance(prep, SpectralSegmentation) else prep.sample
+
+    def select(self, sample: np.ndarray) -> tuple[Mixture, dict[int, float]]:
+        """The mixture for fit rows ``sample`` (as ``analyse`` selects it: the given count, the
+        variational fit or the lowest criterion) and the criterion per count tried."""
+        rows = np.asarray(sample, dtype=np.float64)
+        if rows.ndim != 2 or rows.shape[0] < 2 or not np.all(np.isfinite(rows)):
+            raise AnalysisInputError("sample", f"need finite rows (n ≥ 2, features), got shape {rows.shape}")
+        with self._threads():
+            return self._select(rows)
+
+    def _threads(self) -> AbstractContextManager[object]:
+        return nullcontext() if self.blas_threads is None else threadpool_limits(limits=self.blas_threads)
+
+    def _prepare(self, arr: np.ndarray, saturated: np.ndarray | None = None
+                 ) -> _Prepared | SpectralSegmentation:
+        """Everything before the mixture: foreground, reliability, denoising, features and the fit
+        sample; a cube with nothing to fit comes back finished (a ``SpectralSegmentation``)."""
         h, w = arr.shape[1:]
         if self.white is not None:
             arr = normalise_cube(arr, white=self.white)
@@ -762,9 +868,19 @@ class SpectralSegmenter:
             if self.pool_target_deg > 0:
                 per = pool_size(noise_deg, self.pool_target_deg)
         stride, averaged = 1, 1
+        edges = None  # blends inside the object, judged on the cube as captured (the guided filter,
+        if rel is not None and self.edge_step > 0:  # guided by spectral shape, smooths them away)
+            edges = darker_than_a_neighbour(energy, self.edge_step)
         if per > 1 and rel is not None and self.denoise == "guided":
             averaged = per
-            arr, radius = guided_denoise(arr, fg & ~rel.saturated, per)
+            averaged_over = fg & ~rel.saturated
+            if self.blend_filter_step > 0:  # strong blends are not averaged in, as clipped pixels are not
+                if self.blend_filter_angle > 0 and np.isfinite(raw_noise_deg):
+                    limit = self.blend_filter_angle * raw_noise_deg
+                    averaged_over &= ~garbled_blends(energy, unit, self.blend_filter_step, limit)
+                else:
+                    averaged_over &= ~darker_than_a_neighbour(energy, self.blend_filter_step)
+            arr, radius = guided_denoise(arr, averaged_over, per)
             unit, energy, feats = self._features(arr)
             noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
             if self.dark_after_denoise and np.isfinite(noise_deg) and noise_deg > 0:
@@ -793,6 +909,9 @@ class SpectralSegmenter:
             if rel is not None and np.isfinite(noise_deg):  # the angle follows the cube's noise
                 angle = min(max(angle, NOISE_ANGLE_FACTOR * noise_deg), 45.0)
             fit = homogeneous_pixels(unit, fg, angle, scale)
+            # the mosaic garbles a cell that is part object, part gap: a blend, out of the fit
+            if edges is not None and int((fit & ~edges).sum()) >= MIN_FIT_PIXELS:
+                fit = fit & ~edges
         if rel is not None and pooled is None:
             fit = fit & ~rel.unreliable
             if int(fit.sum()) < MIN_FIT_PIXELS:
@@ -809,8 +928,23 @@ class SpectralSegmenter:
         sample = pool
         if pool.shape[0] > self.sample_size:
             sample = pool[rng.choice(pool.shape[0], self.sample_size, replace=False)]
-        fits: dict[int, GaussianMixture | BayesianGaussianMixture] = {}
-        best, bic = self._select(sample, fits=fits)
+        return _Prepared(arr, fg, threshold, rel, unit, feats, spectra, fit, sample, per, noise_deg,
+                         raw_noise_deg, averaged, n_fg)
+
+    def _label(self, prep: _Prepared, mixture: Mixture | None = None) -> SpectralSegmentation:
+        """Labels from the mixture: ``mixture`` when given and of the sample's width, else selected
+        on the cube's own sample; then merging, near ties, saturated pixels and smoothing."""
+        arr, fg, rel, unit, feats, spectra = prep.arr, prep.fg, prep.rel, prep.unit, prep.feats, prep.spectra
+        sample, per, noise_deg, raw_noise_deg = prep.sample, prep.per, prep.noise_deg, prep.raw_noise_deg
+        labels = np.zeros(fg.shape, dtype=np.int32)
+        fits: dict[int, Mixture] = {}
+        shared = mixture is not None and int(mixture.means_.shape[1]) == sample.shape[1]
+        bic: dict[int, float] = {}
+        if shared:
+            assert mixture is not None
+            best = mixture
+        else:
+            best, bic = self._select(sample, fits=fits)
         noise_fit = noise_deg / np.sqrt(2.0 * per)
         comp = self._assign(best, sample, spectra, fg, rel, noise_fit, unit.shape[0])
         ties: list[int] = []
@@ -844,6 +978,7 @@ class SpectralSegmenter:
             labels = majority_in_superpixels(labels, sp).astype(np.int32)
         n_used = int(np.count_nonzero(np.bincount(labels.ravel())[1:]))
         if rel is None:
-            return SpectralSegmentation(labels, n_used, threshold, bic, n_fg)
-        return SpectralSegmentation(labels, n_used, threshold, bic, n_fg, rel.unreliable,
-                                    tuple(int(b) for b in rel.bands), fit, averaged, censored)
+            return SpectralSegmentation(labels, n_used, prep.threshold, bic, prep.n_fg, shared=shared)
+        return SpectralSegmentation(labels, n_used, prep.threshold, bic, prep.n_fg, rel.unreliable,
+                                    tuple(int(b) for b in rel.bands), prep.fit, prep.averaged, censored,
+                                    shared)
