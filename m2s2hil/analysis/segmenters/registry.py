@@ -16,6 +16,9 @@ rgb        ``RgbBaseline(SpectralSegmenter)``: the same on what an IR-cut RGB ca
            (CIE 1931 → linear sRGB, ``rgb.camera_rgb``)
 rgb-nir    the same on the paper's wavelength→RGB map with the near-infrared bands
            clamped into red (``rgb.render_rgb``): not what a camera sees
+spectral-sweep ``SweepSegmenter``: the spectral segmenter with one mixture fitted on a whole
+           sweep (``fit(cubes)`` first; ``evaluate`` fits one per session and lighting)
+rgb-sweep  ``RgbBaseline(SweepSegmenter)``: the same on camera RGB
 sam        ``SamSegmenter``: SAM per selected band, majority-vote fusion (optional extra)
 sam-rgb    ``RgbBaseline(SamSegmenter(mode="image"))``: SAM on the camera RGB image
 ========== ===============================================================
@@ -38,6 +41,7 @@ from m2s2hil.analysis.errors import AnalysisInputError, UnknownSegmenterError
 from m2s2hil.analysis.segmenters.rgb import RgbBaseline
 from m2s2hil.analysis.segmenters.sam import SamSegmenter
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
+from m2s2hil.analysis.segmenters.sweep import SweepSegmenter
 
 
 @runtime_checkable
@@ -113,6 +117,15 @@ def _rgb_nir_spectral(**options: Any) -> Segmenter:
     return RgbBaseline(SpectralSegmenter(**rest), rendering="bruton", **rgb)
 
 
+def _sweep(**options: Any) -> Segmenter:
+    return SweepSegmenter(**options)
+
+
+def _rgb_sweep(**options: Any) -> Segmenter:
+    rgb, rest = _split_rgb(dict(options))
+    return RgbBaseline(SweepSegmenter(**rest), **rgb)
+
+
 def _sam(**options: Any) -> Segmenter:
     return SamSegmenter(**options)
 
@@ -126,5 +139,7 @@ def _sam_rgb(**options: Any) -> Segmenter:
 register_segmenter("spectral", _spectral)
 register_segmenter("rgb", _rgb_spectral)
 register_segmenter("rgb-nir", _rgb_nir_spectral)
+register_segmenter("spectral-sweep", _sweep)
+register_segmenter("rgb-sweep", _rgb_sweep)
 register_segmenter("sam", _sam)
 register_segmenter("sam-rgb", _sam_rgb)

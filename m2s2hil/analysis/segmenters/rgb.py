@@ -49,8 +49,8 @@ comparison of inputs with the same segmenter family.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, Literal
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -215,3 +215,17 @@ class RgbBaseline:
 
     def segment(self, cube: np.ndarray) -> np.ndarray:
         return self.segmenter.segment(self.render(cube))
+
+    def fit(self, cubes: Iterable[object]) -> Any:
+        """A sweep segmenter inside (``segmenters.sweep``): fitted on the sweep's RGB renderings."""
+        fit = getattr(self.segmenter, "fit", None)
+        if not callable(fit):
+            raise AnalysisInputError("segmenter", f"{self.segmenter!r} is not fitted on a sweep")
+        return fit(self.render(as_cube(c)) for c in cubes)
+
+    def use(self, model: Any) -> None:
+        """A sweep segmenter inside: label with the ``model`` its ``fit`` returned."""
+        use = getattr(self.segmenter, "use", None)
+        if not callable(use):
+            raise AnalysisInputError("segmenter", f"{self.segmenter!r} is not fitted on a sweep")
+        use(model)

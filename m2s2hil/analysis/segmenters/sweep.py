@@ -1,0 +1,165 @@
+"""One mixture for a whole sweep: the materials fitted once on every frame's fit pixels, each frame
+labelled with them (issue 23, ninth pass).
+
+A session sweeps one build under one lighting through 36 azimuths (× tilts): every frame shows the
+same materials, each from another side. Fitted frame by frame, the count of a build with small parts
+hangs on the few pixels one view gives them (Voyager B3 at 5 % peak: K within ±1 on 10 of 36
+frames, 2 materials short on average; docs/evaluation.md, "The goal on the whole sweep"). Pooled
+over the sweep, a part seen from any side adds its pixels to the fit.
+
+``SweepSegmenter.fit(cubes)`` takes each cube's fit rows as ``SpectralSegmenter`` makes them
+(``fit_sample``: foreground, reliability, denoising, homogeneous interior), an equal share of
+``sweep_sample_size`` rows from every frame (a frame with fewer gives all of its rows), and selects
+one mixture on them (``SpectralSegmenter.select``: BIC over 1..``max_materials``). ``analyse(cube)``
+then labels a frame with that mixture: merging, the weight floor, the interior test, saturated
+pixels and smoothing run per frame as in ``SpectralSegmenter``, so a material the frame does not
+show gets no pixels, and the frame's count is what it shows. The near-tie step does not run (one
+mixture, no counts to weigh).
+
+``sweep_sample_size`` (5 000) is the one new setting, and the count depends on it: BIC's penalty
+grows as log n while a component's gain grows as n, so more rows let smaller parts in, and also
+let a single glossy material split along its specular tint. 2 500 rows (about one frame's) left
+Voyager B3 as short as frame by frame; 10 000 split ISS B1 into three on most frames. The figures
+are in docs/evaluation.md ("Ninth pass: one mixture per sweep").
+
+The frame segmenter gets ``edge_step=0.2`` unless told otherwise (``SpectralSegmenter`` step 3b):
+pooled over a sweep, the blends beside ISS B1's one-pixel panel gaps were in every view's rows,
+and the one mixture split it on every frame (5 of 36 within ±1 at 10 % peak without the test).
+
+Frames whose features have another width than the sweep's (a band dropped for clipping in that
+frame only) do not add rows, and are labelled by a mixture of their own (``shared`` is false).
+Every frame is read twice (once to fit, once to label), so memory holds one frame at a time plus
+the sample. The brightness coordinate of the features is log energy, so frames of other
+exposures are scaled to one: ``fit(cubes, exposures=…)`` scales each to the first frame's
+exposure × gain, and ``analyse(cube, exposure_s=…)`` then needs each frame's.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from m2s2hil.analysis.arrays import as_cube
+from m2s2hil.analysis.errors import AnalysisInputError
+from m2s2hil.analysis.segmenters.spectral import Mixture, SpectralSegmentation, SpectralSegmenter
+
+SWEEP_SAMPLE_SIZE = 5_000
+#: blends inside the object out of the fit (``SpectralSegmenter.edge_step``): a sweep pools every
+#: view's blends too, and ISS B1's panel gaps then split it on every frame, not on some
+SWEEP_EDGE_STEP = 0.2
+
+
+@dataclass(frozen=True)
+class SweepModel:
+    """The mixture of one sweep and what it was fitted on."""
+
+    mixture: Mixture
+    width: int  # features per row (bands used + brightness)
+    frames: int  # frames whose rows were pooled
+    skipped: int  # frames with no rows or of another width
+    rows: int  # rows the mixture was fitted on
+    bic: dict[int, float] = field(default_factory=dict)
+    exposure_s: float | None = None  # the exposure every frame is scaled to (None: frames as given)
+
+    @property
+    def n_components(self) -> int:
+        return int(self.mixture.n_components)
+
+
+class SweepSegmenter:
+    """``SpectralSegmenter`` with one mixture for a sweep (module docstring): ``fit`` on the sweep's
+    cubes, then ``analyse``/``segment`` each; ``analyse_sweep`` does both."""
+
+    name = "spectral-sweep"
+
+    def __init__(self, *, sweep_sample_size: int = SWEEP_SAMPLE_SIZE, **options: object) -> None:
+        if not isinstance(sweep_sample_size, int) or sweep_sample_size < 2:
+            problem = f"must be an integer ≥ 2, got {sweep_sample_size!r}"
+            raise AnalysisInputError("sweep_sample_size", problem)
+        self.sweep_sample_size = sweep_sample_size
+        options.setdefault("edge_step", SWEEP_EDGE_STEP)
+        self.frame = SpectralSegmenter(**options)  # type: ignore[arg-type]
+        self.model: SweepModel | None = None
+
+    def fit(self, cubes: Iterable[object], *, exposures: Iterable[float] | None = None) -> SweepModel:
+        """Pool an equal share of every cube's fit rows and select the sweep's mixture. ``exposures``
+        (seconds × gain, one a cube): each cube is scaled to the first one's, so the brightness
+        coordinate of a material is the same in every frame."""
+        times = None if exposures is None else iter(exposures)
+        reference: float | None = None
+        samples: list[np.ndarray] = []
+        empty = 0
+        for i, cube in enumerate(cubes):
+            t = None if times is None else _exposure(next(times, None), i)
+            try:
+                arr = as_cube(cube)
+                if t is not None:
+                    reference = reference or t
+                    arr = arr * np.float32(reference / t)
+                rows = self.frame.fit_sample(arr)
+            except AnalysisInputError as exc:
+                raise AnalysisInputError(f"sweep frame {i}", exc.problem) from exc
+            if rows is None or rows.shape[0] == 0:
+                empty += 1
+                continue
+            samples.append(rows)
+        if not samples:
+            problem = f"none of the {empty} frames has foreground to fit" if empty else "no frames to fit"
+            raise AnalysisInputError("cubes", problem)
+        width = Counter(s.shape[1] for s in samples).most_common(1)[0][0]
+        usable = [s for s in samples if s.shape[1] == width]
+        share = max(1, self.sweep_sample_size // len(usable))
+        rng = np.random.default_rng(self.frame.seed)
+        pooled = np.concatenate([s if s.shape[0] <= share else s[rng.choice(s.shape[0], share, replace=False)]
+                                 for s in usable])
+        mixture, bic = self.frame.select(pooled)
+        self.model = SweepModel(mixture, width, len(usable), empty + len(samples) - len(usable),
+                                int(pooled.shape[0]), bic, reference)
+        return self.model
+
+    def use(self, model: SweepModel) -> None:
+        """Label with ``model`` (fitted elsewhere: an evaluation fits each sweep once, then sends the
+        model with every frame's job)."""
+        if not isinstance(model, SweepModel):
+            raise AnalysisInputError("model", f"expected a SweepModel, got {type(model).__name__}")
+        self.model = model
+
+    def analyse(self, cube: object, *, saturated: np.ndarray | None = None, exposure_s: float | None = None
+                ) -> SpectralSegmentation:
+        """Label one frame of the fitted sweep (``exposure_s``: its exposure × gain, when the sweep
+        was fitted with exposures)."""
+        if self.model is None:
+            problem = "not fitted: call fit(cubes) with the sweep's frames first"
+            raise AnalysisInputError("spectral-sweep", problem)
+        arr = as_cube(cube)
+        if self.model.exposure_s is not None:
+            if exposure_s is None:
+                problem = "the sweep was fitted with exposures: give this frame's"
+                raise AnalysisInputError("exposure_s", problem)
+            arr = arr * np.float32(self.model.exposure_s / _exposure(exposure_s, 0))
+        return self.frame.analyse(arr, saturated=saturated, mixture=self.model.mixture)
+
+    def segment(self, cube: np.ndarray) -> np.ndarray:
+        return self.analyse(cube).labels
+
+    def analyse_sweep(self, cubes: list[object], exposures: list[float] | None = None
+                      ) -> list[SpectralSegmentation]:
+        """Fit on ``cubes``, then label each."""
+        self.fit(cubes, exposures=exposures)
+        times: list[float | None] = [None] * len(cubes) if exposures is None else list(exposures)
+        return [self.analyse(c, exposure_s=t) for c, t in zip(cubes, times, strict=True)]
+
+
+def _exposure(value: object, index: int) -> float:
+    """A frame's exposure as a positive number, or a typed error naming the frame."""
+    try:
+        t = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not (np.isfinite(t) and t > 0):
+        problem = f"must be a positive number of seconds, got {value!r}"
+        raise AnalysisInputError(f"exposures[{index}]", problem)
+    return t
