@@ -224,3 +224,89 @@ def test_exported_dataset_without_labels_gets_mtc_only(tmp_path):
     assert "table2.png" not in written and "mtc.png" in written
     md = (tmp_path / "out" / "table2.md").read_text()
     assert "only the ground-truth-free mTC" in md and "| Hubble | B1 | 2 | E0 | 2 | – |" in md
+
+
+@pytest.mark.slow  # captures nothing new, but fits and evaluates two sweeps of the module's session
+def test_a_sweep_segmenter_is_fitted_once_per_sweep_and_labels_its_frames(session):
+    """``--segmenter spectral-sweep``: one mixture per session and lighting (evaluation.sweeps),
+    each image labelled with its own sweep's, as the segmenter does it directly."""
+    from m2s2hil.analysis.evaluation.loading import load_cube, load_truth
+    from m2s2hil.analysis.evaluation.sweeps import fit_sweeps, sweep_key
+    from m2s2hil.analysis.metrics.scores import score_clusters
+    from m2s2hil.analysis.segmenters.sweep import SweepModel, SweepSegmenter
+
+    jobs, sources = collect_jobs(session)
+    options = EvalOptions(multi="spectral-sweep", mtc_for="none")
+    assert options.segmenters == ("spectral-sweep", "rgb-sweep")
+    fitted = fit_sweeps(jobs, options)
+    models = {(sweep_key(j), name): model for j in fitted for name, model in j.sweep}
+    assert {key[0][3] for key in models} == {"weak", "directional"} and len(models) == 4
+    assert all(isinstance(m, SweepModel) and m.frames == 4 for m in models.values())
+    for j in fitted:  # every image of a sweep carries the very same model
+        assert dict(j.sweep)["spectral-sweep"] is models[(sweep_key(j), "spectral-sweep")]
+    res = evaluate_jobs(jobs, options, workers=0, sources=sources)
+    weak = [j for j in jobs if j.lighting == "weak"]
+    direct = SweepSegmenter()
+    direct.fit(load_cube(j) for j in weak)
+    for j in weak:
+        cube = load_cube(j)
+        labels = direct.segment(cube)
+        rec = next(r for r in res.records if r["image_id"] == j.image_id)
+        got = rec["results"]["spectral-sweep"]
+        assert "errors" not in got and "errors" not in rec["results"]["rgb-sweep"]
+        assert got["n_segments"] == len(np.unique(labels[labels > 0]))
+        truth = load_truth(j, cube.shape[1:])
+        assert got["dice"] == pytest.approx(score_clusters(truth, labels)[0].macro_dice)
+
+
+def test_a_sweep_that_cannot_be_fitted_is_each_images_error(session, tmp_path):
+    from dataclasses import replace
+
+    from m2s2hil.analysis.evaluation.evaluate import evaluate_job
+    from m2s2hil.analysis.evaluation.jobs import FileRef
+    from m2s2hil.analysis.evaluation.sweeps import fit_sweep
+
+    jobs, _ = collect_jobs(session)
+    options = EvalOptions(multi="spectral-sweep", mtc_for="none")
+    gone = [replace(j, cube=FileRef(str(tmp_path / "gone.tif")), raw=None) for j in jobs[:2]]
+    why = fit_sweep(("spectral-sweep", gone), options)
+    assert isinstance(why, str) and "could not be fitted" in why and "no frames to fit" in why
+    rec = evaluate_job(replace(jobs[0], sweep=(("spectral-sweep", why),)), options)
+    assert rec["error"] is None  # the image itself reads; only the sweep segmenters fail on it
+    assert "could not be fitted" in rec["results"]["spectral-sweep"]["errors"]["segment"]
+    assert "no model fitted" in rec["results"]["rgb-sweep"]["errors"]["segment"]
+
+
+def test_cli_evaluates_with_a_sweep_segmenter(session, tmp_path):
+    out = tmp_path / "ev"
+    res = run_cli("evaluate", session, "--out", out, "--workers", "0", "--segmenter", "spectral-sweep",
+                  "--mtc", "none")
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert "spectral-sweep" in json.dumps(summary) and "rgb-sweep" in json.dumps(summary)
+    assert "| Voyager | B2 | 5 | E0 | 8 |" in res.output
+
+
+def test_each_frame_records_its_exposure_and_a_sweep_mixing_exposures_is_scaled_to_its_first(session):
+    """Sweep segmenters see one brightness per material: an auto-exposed sweep's cubes are scaled to
+    its first frame's exposure × gain before they are fitted and labelled (evaluation.sweeps)."""
+    from dataclasses import replace
+
+    from m2s2hil.analysis.evaluation.loading import load_cube
+    from m2s2hil.analysis.evaluation.sweeps import fit_sweeps, scaled_to_sweep, sweep_cube
+
+    jobs, _ = collect_jobs(session)
+    assert all(j.exposure is not None and j.exposure > 0 for j in jobs)  # from the frames' records
+    weak = [j for j in jobs if j.lighting == "weak"]
+    assert len({j.exposure for j in weak}) == 1  # the plan's fixed exposure: nothing to scale
+    assert [j.sweep_scale for j in scaled_to_sweep(weak)] == [1.0] * len(weak)
+    mixed = [replace(j, exposure=j.exposure * f) for j, f in zip(weak, (1.0, 2.0, 0.5, 4.0), strict=True)]
+    assert [j.sweep_scale for j in scaled_to_sweep(mixed)] == pytest.approx([1.0, 0.5, 2.0, 0.25])
+    unknown = [replace(mixed[0], exposure=None), *mixed[1:]]
+    assert [j.sweep_scale for j in scaled_to_sweep(unknown)] == [1.0] * len(weak)  # one missing: as given
+    fitted = fit_sweeps(mixed + [j for j in jobs if j.lighting != "weak"],
+                        EvalOptions(multi="spectral-sweep", mtc_for="none"))
+    assert [j.sweep_scale for j in fitted[:4]] == pytest.approx([1.0, 0.5, 2.0, 0.25])
+    assert all(j.sweep_scale == 1.0 for j in fitted[4:])
+    cube = load_cube(fitted[3])
+    assert np.allclose(sweep_cube(cube, fitted[3]), cube * 0.25)

@@ -136,6 +136,9 @@ def test_evaluate_command_gives_a_synthetic_session_its_columns(tmp_path, synth)
     r = run_cli("evaluate", synth.path, "--out", tmp_path, "--limit", "1")
     assert r.exit_code == 0, r.stderr
     assert "| hubble | B2 | 5 | E0 | 1 |" in r.stdout and (tmp_path / "synthetic_table2.csv").is_file()
+    # a sweep segmenter is fitted on a HIL session's sweep; here it is refused, saying so
+    r = run_cli("evaluate", synth.path, "--out", tmp_path / "sweep", "--segmenter", "spectral-sweep")
+    assert r.exit_code == 2 and "view by view" in r.stderr and not (tmp_path / "sweep").exists(), r.output
 
 
 def test_synth_command_renders_a_session_of_its_own_kind(tmp_path):

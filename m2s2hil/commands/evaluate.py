@@ -33,7 +33,8 @@ def evaluate_cmd(
     segmenter: str = typer.Option(
         "spectral",
         "--segmenter",
-        help="multispectral segmenter: spectral, spectral-smooth or sam; its RGB counterpart runs with it",
+        help="multispectral segmenter: spectral, spectral-smooth, spectral-sweep (one mixture a session "
+             "and lighting) or sam; its RGB counterpart runs with it",
     ),
     also: list[str] = typer.Option([], "--also", help="more segmenters to time and score (repeatable)"),
     checkpoint: Path | None = typer.Option(None, "--checkpoint", help="SAM checkpoint (for --segmenter sam)"),

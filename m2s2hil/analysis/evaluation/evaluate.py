@@ -49,8 +49,15 @@ import numpy as np
 from m2s2hil.analysis.bands import PAPER_BANDS, select_bands_pca
 from m2s2hil.analysis.evaluation.jobs import EvaluationError, FrameJob
 from m2s2hil.analysis.evaluation.loading import load_cube, load_projected, load_truth
-from m2s2hil.analysis.evaluation.options import EvalOptions, cached_segmenter, check_segmenters, mtc_predictor
+from m2s2hil.analysis.evaluation.options import (
+    EvalOptions,
+    cached_segmenter,
+    check_segmenters,
+    is_sweep,
+    mtc_predictor,
+)
 from m2s2hil.analysis.evaluation.parallel import dask_client, describe, map_ordered
+from m2s2hil.analysis.evaluation.sweeps import fit_sweeps, sweep_cube
 from m2s2hil.analysis.metrics.band_stability import band_stability
 from m2s2hil.analysis.metrics.mtc import mtc
 from m2s2hil.analysis.metrics.scores import score_clusters
@@ -75,6 +82,12 @@ def _segmenter_result(
     errors: dict[str, str] = {}
     try:
         seg = cached_segmenter(name, options, bands_nm)
+        if is_sweep(name):  # label with the mixture fitted on this image's sweep (evaluation.sweeps)
+            model = dict(job.sweep).get(name)
+            if model is None or isinstance(model, str):
+                raise EvaluationError(model or f"{name}: no model fitted for this image's sweep")
+            seg.use(model)  # type: ignore[attr-defined]
+            cube = sweep_cube(cube, job)  # at the exposure the sweep was fitted at
         t1 = time.perf_counter()
         pred = seg.segment(cube)
         res["time_s"] = time.perf_counter() - t1
@@ -256,14 +269,14 @@ def evaluate_jobs(
 
     t0 = time.perf_counter()
     if workers == 0 and not scheduler:
-        records = map_ordered(evaluate_job, list(jobs), client=None, on_result=on_result, options=options)
+        fitted = fit_sweeps(jobs, options)  # the sweep segmenters' mixtures first, one task a sweep
+        records = map_ordered(evaluate_job, fitted, client=None, on_result=on_result, options=options)
         compute = describe(None)
     else:
         with dask_client(scheduler, workers=workers, processes=processes) as client:
             compute = describe(client)
-            records = map_ordered(
-                evaluate_job, list(jobs), client=client, on_result=on_result, options=options
-            )
+            fitted = fit_sweeps(jobs, options, client=client)
+            records = map_ordered(evaluate_job, fitted, client=client, on_result=on_result, options=options)
     bands_nm: Sequence[float] = next((j.camera["bands_nm"] for j in jobs if j.camera.get("bands_nm")), ())
     bands = band_report(records, options, bands_nm)
     return EvaluationResult(records, options, list(sources), time.perf_counter() - t0, compute, bands)

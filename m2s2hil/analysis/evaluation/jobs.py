@@ -8,6 +8,7 @@ pickles cheaply to Dask workers; ``loading`` turns it into pixels.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +58,13 @@ class FrameJob:
     labels: FileRef | None = None
     preview: FileRef | None = None
     projected: FileRef | None = None  # the twin's projected labels (HIL columns of Table 2)
+    # (segmenter name, its SweepModel or why none could be fitted) for each sweep segmenter
+    # (evaluation.sweeps): a few kB of mixture, never pixels
+    sweep: tuple[tuple[str, Any], ...] = ()
+    exposure: float | None = None  # exposure_s × gain as the frame was taken (sessions only)
+    # the factor that brings this image to its sweep's first exposure, for the sweep segmenters
+    # (evaluation.sweeps; 1 when the sweep shares one exposure, as the plan's fixed exposures do)
+    sweep_scale: float = 1.0
 
 
 def _camera_json(model: CameraModel) -> dict[str, Any]:
@@ -101,9 +109,21 @@ def session_jobs(store: SessionStore) -> list[FrameJob]:
                 labels=labels,
                 preview=ref(files["preview"]) if "preview" in files else None,
                 projected=ref(files[PROJECTED_ROLE]) if PROJECTED_ROLE in files else None,
+                exposure=_exposure(fr.meta, ev),
             )
         )
     return jobs
+
+
+def _exposure(meta: Mapping[str, Any], event: Mapping[str, Any]) -> float | None:
+    """exposure_s × gain as the frame records them (the plan's values when it does not); None when
+    either is missing or not a positive number (an auto-exposed frame from an older session)."""
+    try:
+        seconds = float(meta.get("exposure_s", event.get("exposure_s")))
+        value = seconds * float(meta.get("gain", event.get("gain", 1.0)))
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) and value > 0 else None
 
 
 def dataset_jobs(path: str | Path) -> list[FrameJob]:

@@ -34,7 +34,8 @@ from m2s2hil.errors import UsageError
 
 MtcFor = Literal["multi", "all", "none"]
 MtcMode = Literal["labels", "binary"]
-RGB_COUNTERPART = {"spectral": "rgb", "spectral-smooth": "rgb-smooth", "sam": "sam-rgb"}
+RGB_COUNTERPART = {"spectral": "rgb", "spectral-smooth": "rgb-smooth", "spectral-sweep": "rgb-sweep",
+                   "sam": "sam-rgb"}
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,11 @@ def cached_segmenter(name: str, options: EvalOptions, bands_nm: Sequence[float])
     if seg is None:
         seg = segs[key] = make_segmenter(name, options.segmenter_options, bands_nm=bands_nm)
     return seg
+
+
+def is_sweep(name: str) -> bool:
+    """A segmenter fitted once on each sweep's frames (``segmenters.sweep``) before any is labelled."""
+    return name.endswith("-sweep")
 
 
 def is_rgb(name: str) -> bool:

@@ -1,0 +1,97 @@
+"""Fitting the sweep segmenters (``segmenters.sweep``) before the images are evaluated.
+
+A sweep is every frame of one session (or exported dataset) of one satellite and build under one
+lighting: the same materials, seen from every azimuth and tilt. Each sweep
+segmenter the evaluation runs (``spectral-sweep``, ``rgb-sweep``) is fitted once per sweep, as one
+task per sweep on the same workers as the images; the fitted model (a few kB of mixture) then
+travels with each of the sweep's ``FrameJob``s, which label their image with it. A sweep whose
+model cannot be fitted (no frame could be read, no foreground) carries the reason instead, and each
+of its images reports it as that segmenter's error, as any failed segmentation is reported.
+
+The plan gives every frame of a lighting one exposure; where a sweep's frames record different
+ones (auto-exposure), each cube is scaled to the first frame's exposure × gain before it is fitted
+and labelled (``FrameJob.sweep_scale``), so a material keeps one brightness coordinate across the
+sweep: on simulated frames each exposed for its own peak, unscaled, the spotlight at 0° lost
+19 points of K within ±1 (docs/evaluation.md, ninth pass). A sweep where any frame lacks its
+exposure is left unscaled.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from m2s2hil.analysis.evaluation.jobs import FrameJob
+from m2s2hil.analysis.evaluation.loading import load_cube
+from m2s2hil.analysis.evaluation.options import EvalOptions, is_sweep, make_segmenter
+from m2s2hil.analysis.evaluation.parallel import map_ordered
+
+log = logging.getLogger(__name__)
+
+SweepKey = tuple[str, str, str, str]
+
+
+def sweep_key(job: FrameJob) -> SweepKey:
+    """The sweep an image belongs to: its source, satellite, build and lighting."""
+    return (job.source, job.satellite, job.build, job.lighting)
+
+
+def fit_sweep(group: tuple[str, list[FrameJob]], options: EvalOptions) -> Any:
+    """One sweep segmenter fitted on one sweep's images (read one at a time); the model, or the
+    reason there is none as a string. Images that cannot be read are left out of the fit (their
+    own job reports them)."""
+    name, jobs = group
+    bands_nm = next((j.camera.get("bands_nm") for j in jobs if j.camera.get("bands_nm")), None)
+    try:
+        seg = make_segmenter(name, options.segmenter_options, bands_nm=bands_nm)
+
+        def cubes() -> Iterator[np.ndarray]:
+            for job in jobs:
+                try:
+                    yield sweep_cube(load_cube(job, options.reprocess), job)
+                except Exception as exc:  # reported by the image's own job
+                    log.warning("sweep fit of %s: %s left out: %s", name, job.image_id, exc)
+
+        return seg.fit(cubes())  # type: ignore[attr-defined]
+    except Exception as exc:  # the sweep's images report it as this segmenter's error
+        return f"{type(exc).__name__}: the sweep's mixture could not be fitted: {exc}"
+
+
+def sweep_cube(cube: np.ndarray, job: FrameJob) -> np.ndarray:
+    """``cube`` at its sweep's exposure (``FrameJob.sweep_scale``)."""
+    return cube if job.sweep_scale == 1.0 else cube * np.float32(job.sweep_scale)
+
+
+def scaled_to_sweep(members: list[FrameJob]) -> list[FrameJob]:
+    """One sweep's jobs with ``sweep_scale`` set: the first frame's exposure over each frame's,
+    when every frame has one (else 1)."""
+    exposures = [j.exposure for j in members]
+    if not members or any(e is None for e in exposures):
+        return members
+    reference = exposures[0]
+    return [replace(j, sweep_scale=float(reference / e)) for j, e in zip(members, exposures, strict=True)]  # type: ignore[operator]
+
+
+def fit_sweeps(jobs: Sequence[FrameJob], options: EvalOptions, *, client: Any = None) -> list[FrameJob]:
+    """``jobs`` with each sweep segmenter's model for their sweep attached (``FrameJob.sweep``) and
+    their scale to the sweep's exposure (``FrameJob.sweep_scale``), in the order given."""
+    names = [n for n in options.segmenters if is_sweep(n)]
+    if not names:
+        return list(jobs)
+    groups: dict[SweepKey, list[FrameJob]] = {}
+    for job in jobs:
+        groups.setdefault(sweep_key(job), []).append(job)
+    groups = {key: scaled_to_sweep(members) for key, members in groups.items()}
+    scale = {j.image_id: j.sweep_scale for members in groups.values() for j in members}
+    tasks = [(name, members) for name in names for members in groups.values()]
+    models = map_ordered(fit_sweep, tasks, client=client, options=options)
+    attached: dict[SweepKey, list[tuple[str, Any]]] = {key: [] for key in groups}
+    keys = [key for _ in names for key in groups]
+    for key, (name, _), model in zip(keys, tasks, models, strict=True):
+        attached[key].append((name, model))
+    return [replace(job, sweep=tuple(attached[sweep_key(job)]), sweep_scale=scale[job.image_id])
+            for job in jobs]
