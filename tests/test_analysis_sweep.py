@@ -28,7 +28,8 @@ def test_the_sweep_finds_the_small_parts_that_frames_alone_miss():
     k_sweep = np.array([a.n_materials for a in together])
     k_alone = np.array([a.n_materials for a in alone])
     assert np.sum(np.abs(k_alone - true) <= 1) <= 3  # frame by frame: short on half the views or more
-    assert np.all(np.abs(k_sweep - true) <= 1)
+    assert np.sum(np.abs(k_sweep - true) <= 1) >= 5  # pooled: the parts one view shows small count
+    assert np.abs(k_sweep - true).mean() < np.abs(k_alone - true).mean() - 0.5
     dice_sweep = [score_clusters(f.gt, a.labels)[0].macro_dice for f, a in zip(frames, together, strict=True)]
     dice_alone = [score_clusters(f.gt, a.labels)[0].macro_dice for f, a in zip(frames, alone, strict=True)]
     assert np.mean(dice_sweep) > np.mean(dice_alone) + 0.05
@@ -80,7 +81,9 @@ def test_a_sweep_says_what_is_wrong():
         SweepSegmenter(sweep_sample_size=1)
     with pytest.raises(AnalysisInputError, match="edge_step"):
         SweepSegmenter(edge_step=-1.0)  # the frame segmenter's options are checked as its own
-    assert SweepSegmenter().frame.edge_step == 0.2 and SweepSegmenter(edge_step=0).frame.edge_step == 0
+    default = SweepSegmenter().frame
+    assert (default.edge_step, default.blend_filter_step, default.blend_filter_angle) == (0.2, 0.5, 3.0)
+    assert SweepSegmenter(edge_step=0).frame.edge_step == 0  # a given option wins
     with pytest.raises(AnalysisInputError, match="sweep frame 1"):
         SweepSegmenter().fit([np.ones((10, 8, 8)), np.full((10, 8, 8), np.nan)])
     with pytest.raises(AnalysisInputError, match="sample"):

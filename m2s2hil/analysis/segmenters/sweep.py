@@ -22,9 +22,12 @@ let a single glossy material split along its specular tint. 2 500 rows (about on
 Voyager B3 as short as frame by frame; 10 000 split ISS B1 into three on most frames. The figures
 are in docs/evaluation.md ("Ninth pass: one mixture per sweep").
 
-The frame segmenter gets ``edge_step=0.2`` unless told otherwise (``SpectralSegmenter`` step 3b):
-pooled over a sweep, the blends beside ISS B1's one-pixel panel gaps were in every view's rows,
-and the one mixture split it on every frame (5 of 36 within ±1 at 10 % peak without the test).
+The frame segmenter gets ``SWEEP_FRAME_OPTIONS`` unless told otherwise (``SpectralSegmenter`` step
+3b): blends darker than a neighbour by e^0.2 out of the fit, and those darker by e^0.5 whose shape
+is 3 × the noise angle from that neighbour's out of the guided filter's averages. Pooled over a
+sweep, the blends beside ISS B1's one-pixel panel gaps are in every view's rows, and one mixture
+fitted to them splits it on every frame. Over the goal's cells and two noise seeds these gave the
+most K within ±1 of the variants tried (docs/evaluation.md, "Ninth pass").
 
 Frames whose features have another width than the sweep's (a band dropped for clipping in that
 frame only) do not add rows, and are labelled by a mixture of their own (``shared`` is false).
@@ -47,9 +50,12 @@ from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.segmenters.spectral import Mixture, SpectralSegmentation, SpectralSegmenter
 
 SWEEP_SAMPLE_SIZE = 5_000
-#: blends inside the object out of the fit (``SpectralSegmenter.edge_step``): a sweep pools every
-#: view's blends too, and ISS B1's panel gaps then split it on every frame, not on some
-SWEEP_EDGE_STEP = 0.2
+#: the frame segmenter's settings unless told otherwise: blends inside the object out of the fit
+#: (``edge_step``) and, where the mosaic garbled their shape, out of the guided filter's averages
+#: (``blend_filter_step``, ``blend_filter_angle``). A sweep pools every view's blends, and ISS B1's
+#: panel gaps then split it on every frame, not on some (docs/evaluation.md, ninth pass)
+SWEEP_FRAME_OPTIONS: dict[str, float] = {"edge_step": 0.2, "blend_filter_step": 0.5,
+                                         "blend_filter_angle": 3.0}
 
 
 @dataclass(frozen=True)
@@ -80,8 +86,7 @@ class SweepSegmenter:
             problem = f"must be an integer ≥ 2, got {sweep_sample_size!r}"
             raise AnalysisInputError("sweep_sample_size", problem)
         self.sweep_sample_size = sweep_sample_size
-        options.setdefault("edge_step", SWEEP_EDGE_STEP)
-        self.frame = SpectralSegmenter(**options)  # type: ignore[arg-type]
+        self.frame = SpectralSegmenter(**{**SWEEP_FRAME_OPTIONS, **options})  # type: ignore[arg-type]
         self.model: SweepModel | None = None
 
     def fit(self, cubes: Iterable[object], *, exposures: Iterable[float] | None = None) -> SweepModel:
