@@ -82,7 +82,7 @@ def test_a_sweep_says_what_is_wrong():
     with pytest.raises(AnalysisInputError, match="edge_step"):
         SweepSegmenter(edge_step=-1.0)  # the frame segmenter's options are checked as its own
     default = SweepSegmenter().frame
-    assert (default.edge_step, default.blend_filter_step, default.blend_filter_angle) == (0.2, 0.5, 3.0)
+    assert (default.edge_step, default.blend_filter_step, default.blend_filter_angle) == (0.2, 0.5, 12.0)
     assert SweepSegmenter(edge_step=0).frame.edge_step == 0  # a given option wins
     with pytest.raises(AnalysisInputError, match="sweep frame 1"):
         SweepSegmenter().fit([np.ones((10, 8, 8)), np.full((10, 8, 8), np.nan)])

@@ -64,14 +64,20 @@ materials", has the comparison that chose them):
    super-pixel grid also samples the bands at slightly different places) stay out of the fit:
    fitted on every pixel (``"all"``, the old default), BIC spent components on those blends.
 3b. Blends inside the object (``edge_step`` s > 0, robust only; ninth pass of issue 23; off by
-   default, set by ``spectral-sweep``): pixels darker than a 4-neighbour by more than a factor
+   default, 0.2 in ``spectral-sweep``): pixels darker than a 4-neighbour by more than a factor
    e^s on the cube as captured (``darker_than_a_neighbour``) leave the fit too. A one-pixel gap
    between two of ISS's solar-panel cells shows the backdrop; the super-pixels beside it sample
    each band at another place of the 4 × 4 mosaic, so their spectra are garbled (a band at 0 %
    of the energy, the next at 45 %), and BIC fitted them as materials of their own (ISS B1, one
    material, split in three along the gaps). The guided filter, which follows spectral shape,
-   does not smooth them away. ``blend_filter_step`` (off): blends darker by e^step are also kept
-   out of the guided filter's averages.
+   does not smooth them away. ``blend_filter_step`` (off; 0.5 in ``spectral-sweep``): blends
+   darker by e^step are also kept out of the guided filter's averages, with ``blend_filter_angle``
+   a > 0 (degrees; 0 here, 12 in ``spectral-sweep``) only those more than a from the brighter
+   neighbour's shape (``garbled_blends``). Under the spotlight at 80° a face turning from the
+   light is that much darker on 9–15 % of the foreground with the same shape; left out of the
+   filter by brightness alone, those pixels stayed noisy and split Voyager B1 (one material) in
+   two. The limit is fixed, not a multiple of the cube's noise angle: at 5 % peak, where the
+   noise angle is largest, 3 × it let most blends back into the filter.
 4. Count: ``sklearn.mixture.GaussianMixture`` with 1..``max_materials`` (12) components on at most
    ``sample_size`` fit pixels (``np.random.default_rng(seed)``); the lowest ``criterion`` wins:
    ``"bic"`` (default) or ``"icl"`` (BIC + twice the classification entropy). The sweep stops
@@ -453,7 +459,7 @@ class SpectralSegmenter:
         tie_break: float | None = None,
         edge_step: float = 0.0,
         blend_filter_step: float = 0.0,
-        blend_filter_angle: float = 3.0,
+        blend_filter_angle: float = 0.0,
     ) -> None:
         for key, step in (("edge_step", edge_step), ("blend_filter_step", blend_filter_step),
                           ("blend_filter_angle", blend_filter_angle)):
@@ -875,11 +881,10 @@ class SpectralSegmenter:
             averaged = per
             averaged_over = fg & ~rel.saturated
             if self.blend_filter_step > 0:  # strong blends are not averaged in, as clipped pixels are not
-                if self.blend_filter_angle > 0 and np.isfinite(raw_noise_deg):
-                    limit = self.blend_filter_angle * raw_noise_deg
-                    averaged_over &= ~garbled_blends(energy, unit, self.blend_filter_step, limit)
-                else:
-                    averaged_over &= ~darker_than_a_neighbour(energy, self.blend_filter_step)
+                step, angle = self.blend_filter_step, self.blend_filter_angle
+                blends = (garbled_blends(energy, unit, step, angle) if angle > 0
+                          else darker_than_a_neighbour(energy, step))
+                averaged_over &= ~blends
             arr, radius = guided_denoise(arr, averaged_over, per)
             unit, energy, feats = self._features(arr)
             noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)

@@ -24,10 +24,10 @@ are in docs/evaluation.md ("Ninth pass: one mixture per sweep").
 
 The frame segmenter gets ``SWEEP_FRAME_OPTIONS`` unless told otherwise (``SpectralSegmenter`` step
 3b): blends darker than a neighbour by e^0.2 out of the fit, and those darker by e^0.5 whose shape
-is 3 × the noise angle from that neighbour's out of the guided filter's averages. Pooled over a
+is more than 12° from that neighbour's out of the guided filter's averages. Pooled over a
 sweep, the blends beside ISS B1's one-pixel panel gaps are in every view's rows, and one mixture
-fitted to them splits it on every frame. Over the goal's cells and two noise seeds these gave the
-most K within ±1 of the variants tried (docs/evaluation.md, "Ninth pass").
+fitted to them splits it on every frame. Of the variants tried on the goal's cells over three
+noise seeds these met the most cells (docs/evaluation.md, "Ninth pass").
 
 Frames whose features have another width than the sweep's (a band dropped for clipping in that
 frame only) do not add rows, and are labelled by a mixture of their own (``shared`` is false).
@@ -55,7 +55,7 @@ SWEEP_SAMPLE_SIZE = 5_000
 #: (``blend_filter_step``, ``blend_filter_angle``). A sweep pools every view's blends, and ISS B1's
 #: panel gaps then split it on every frame, not on some (docs/evaluation.md, ninth pass)
 SWEEP_FRAME_OPTIONS: dict[str, float] = {"edge_step": 0.2, "blend_filter_step": 0.5,
-                                         "blend_filter_angle": 3.0}
+                                         "blend_filter_angle": 12.0}
 
 
 @dataclass(frozen=True)
