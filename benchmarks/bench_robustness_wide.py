@@ -224,11 +224,13 @@ def main() -> None:
     ap.add_argument("--name", help="output file stem (default robustness_wide[_sweep])")
     ap.add_argument("--beside", type=Path, help="a results JSON drawn beside this run's bars")
     ap.add_argument("--seed", type=int, default=0, help="the simulator's noise seed")
+    ap.add_argument("--cells", type=lambda v: v.split(","), default=None,
+                    help="comma-separated cells to run (default: the goal's nine)")
     args = ap.parse_args()
     if args.variant == "sweep":
         sweep_main(args)
         return
-    names = [n for n in CELLS if n in GOAL_CELLS or n == REFERENCE]
+    names = chosen_cells(args)
     azimuths = [float(a) for a in np.arange(0.0, 360.0, args.step)]
     t0 = time.time()
     cells: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
@@ -249,6 +251,17 @@ def main() -> None:
           beside, (args.beside.stem if args.beside else "", "this run" if args.beside else ""))
 
 
+def chosen_cells(args: argparse.Namespace) -> list[str]:
+    """The goal's cells (with the reference), or those ``--cells`` names."""
+    names = [n for n in CELLS if n in GOAL_CELLS or n == REFERENCE]
+    if args.cells:
+        unknown = sorted(set(args.cells) - set(names))
+        if unknown:
+            raise SystemExit(f"--cells: unknown {', '.join(unknown)}; choose from {', '.join(names)}")
+        names = [n for n in names if n in args.cells]
+    return names
+
+
 def record(args: argparse.Namespace, cells: dict[str, list[dict[str, Any]]], t0: float, stem: str,
            **meta: Any) -> list[dict[str, Any]]:
     """Write the run's rows and what it ran on to ``stem``.json, print the table; the summary."""
@@ -266,7 +279,7 @@ def record(args: argparse.Namespace, cells: dict[str, list[dict[str, Any]]], t0:
 
 
 def sweep_main(args: argparse.Namespace) -> None:
-    names = [n for n in CELLS if n in GOAL_CELLS or n == REFERENCE]
+    names = chosen_cells(args)
     azimuths = [float(a) for a in np.arange(0.0, 360.0, args.step)]
     t0 = time.time()
     with ProcessPoolExecutor(args.workers) as pool:

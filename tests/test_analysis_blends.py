@@ -8,7 +8,7 @@ from sim_frame import one_frame
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.metrics.scores import score_clusters
-from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, darker_than_a_neighbour, garbled_blends
+from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, darker_than_a_neighbour
 from m2s2hil.analysis.study.simframes import visible_materials
 
 
@@ -40,10 +40,10 @@ def test_a_blend_the_mosaic_garbled_is_told_from_shading():
     cube[:, 2, 2] = 0.4 * garbled  # and darker: part of the cell is gap
     energy = np.linalg.norm(cube, axis=0)
     unit = cube / energy
-    found = garbled_blends(energy, unit, 0.5, 5.0)
+    found = darker_than_a_neighbour(energy, 0.5, unit, 5.0)
     assert found[2, 2] and found.sum() == 1  # the garbled cell alone
     assert darker_than_a_neighbour(energy, 0.5)[:, 4].all()  # brightness alone takes the shaded edge too
-    assert not garbled_blends(energy, unit, 0.5, 90.0).any()  # no shape differs by 90°
+    assert not darker_than_a_neighbour(energy, 0.5, unit, 90.0).any()  # no shape differs by 90°
     with pytest.raises(AnalysisInputError, match="blend_filter_angle"):
         SpectralSegmenter(blend_filter_angle=-1.0)
 

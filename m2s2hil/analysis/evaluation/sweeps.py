@@ -69,11 +69,10 @@ def sweep_cube(cube: np.ndarray, job: FrameJob) -> np.ndarray:
 def scaled_to_sweep(members: list[FrameJob]) -> list[FrameJob]:
     """One sweep's jobs with ``sweep_scale`` set: the first frame's exposure over each frame's,
     when every frame has one (else 1)."""
-    exposures = [j.exposure for j in members]
-    if not members or any(e is None for e in exposures):
+    known = [j.exposure for j in members if j.exposure is not None]
+    if not known or len(known) < len(members):
         return members
-    reference = exposures[0]
-    return [replace(j, sweep_scale=float(reference / e)) for j, e in zip(members, exposures, strict=True)]  # type: ignore[operator]
+    return [replace(j, sweep_scale=known[0] / e) for j, e in zip(members, known, strict=True)]
 
 
 def fit_sweeps(jobs: Sequence[FrameJob], options: EvalOptions, *, client: Any = None) -> list[FrameJob]:
@@ -86,12 +85,12 @@ def fit_sweeps(jobs: Sequence[FrameJob], options: EvalOptions, *, client: Any = 
     for job in jobs:
         groups.setdefault(sweep_key(job), []).append(job)
     groups = {key: scaled_to_sweep(members) for key, members in groups.items()}
-    scale = {j.image_id: j.sweep_scale for members in groups.values() for j in members}
-    tasks = [(name, members) for name in names for members in groups.values()]
+    pairs = [(name, key) for name in names for key in groups]
+    tasks = [(name, groups[key]) for name, key in pairs]
     models = map_ordered(fit_sweep, tasks, client=client, options=options)
     attached: dict[SweepKey, list[tuple[str, Any]]] = {key: [] for key in groups}
-    keys = [key for _ in names for key in groups]
-    for key, (name, _), model in zip(keys, tasks, models, strict=True):
+    for (name, key), model in zip(pairs, models, strict=True):
         attached[key].append((name, model))
-    return [replace(job, sweep=tuple(attached[sweep_key(job)]), sweep_scale=scale[job.image_id])
-            for job in jobs]
+    done = {j.image_id: replace(j, sweep=tuple(attached[key]))
+            for key, members in groups.items() for j in members}
+    return [done[job.image_id] for job in jobs]

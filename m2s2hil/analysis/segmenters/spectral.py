@@ -73,7 +73,7 @@ materials", has the comparison that chose them):
    does not smooth them away. ``blend_filter_step`` (off; 0.5 in ``spectral-sweep``): blends
    darker by e^step are also kept out of the guided filter's averages, with ``blend_filter_angle``
    a > 0 (degrees; 0 here, 12 in ``spectral-sweep``) only those more than a from the brighter
-   neighbour's shape (``garbled_blends``). Under the spotlight at 80° a face turning from the
+   neighbour's shape (``darker_than_a_neighbour``). Under the spotlight at 80° a face turning from the
    light is that much darker on 9–15 % of the foreground with the same shape; left out of the
    filter by brightness alone, those pixels stayed noisy and split Voyager B1 (one material) in
    two. The limit is fixed, not a multiple of the cube's noise angle: at 5 % peak, where the
@@ -249,8 +249,11 @@ def homogeneous_pixels(
     return inner & (np.arccos(np.clip(cos_min, -1.0, 1.0)) < limit)
 
 
-def darker_than_a_neighbour(energy: np.ndarray, step: float) -> np.ndarray:
-    """(H, W) bool: pixels whose energy is below a 4-neighbour's by more than a factor e^step.
+def darker_than_a_neighbour(energy: np.ndarray, step: float, unit: np.ndarray | None = None,
+                            min_angle_deg: float = 0.0) -> np.ndarray:
+    """(H, W) bool: pixels whose energy is below a 4-neighbour's by more than a factor e^step; with
+    ``unit`` (the unit spectra) and ``min_angle_deg`` > 0, only where the pixel's shape is also more
+    than that angle from the brighter neighbour's.
 
     The dark side of a brightness edge is where a super-pixel cell holds part object, part
     something darker (a one-pixel gap between ISS's solar-panel cells, showing the backdrop): its
@@ -258,30 +261,20 @@ def darker_than_a_neighbour(energy: np.ndarray, step: float) -> np.ndarray:
     the two and the spectrum's shape is garbled (a band 0 % and another 45 % of the energy at
     60 % peak). Such cells are blends, as the object's rim is; the rim is left out of the fit by
     eroding the foreground, and these by this test. Only the darker side: the brightest pixels of
-    a part two or three pixels wide (Voyager's booms) are darker than none of their neighbours."""
+    a part two or three pixels wide (Voyager's booms) are darker than none of their neighbours.
+    The angle tells such a blend from shading (a surface turning from the light changes
+    brightness, not shape)."""
     log_e = np.log(np.maximum(energy, 1e-12 * max(float(energy.max()), 1e-12)))
-    brightest = log_e.copy()
-    brightest[1:] = np.maximum(brightest[1:], log_e[:-1])
-    brightest[:-1] = np.maximum(brightest[:-1], log_e[1:])
-    brightest[:, 1:] = np.maximum(brightest[:, 1:], log_e[:, :-1])
-    brightest[:, :-1] = np.maximum(brightest[:, :-1], log_e[:, 1:])
-    return brightest - log_e > step
-
-
-def garbled_blends(energy: np.ndarray, unit: np.ndarray, step: float, min_angle_deg: float) -> np.ndarray:
-    """(H, W) bool: pixels darker than a 4-neighbour by more than e^step *and* more than
-    ``min_angle_deg`` from that neighbour's spectral shape: blends whose shape the mosaic garbled,
-    not the shading of a surface turning from the light (which changes brightness, not shape)."""
-    log_e = np.log(np.maximum(energy, 1e-12 * max(float(energy.max()), 1e-12)))
+    shapes = unit if min_angle_deg > 0 else None
     cos_max = np.cos(np.radians(min_angle_deg))
     found = np.zeros(energy.shape, dtype=bool)
-    for here, there in (((slice(1, None), slice(None)), (slice(None, -1), slice(None))),
-                        ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
-                        ((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
-                        ((slice(None), slice(None, -1)), (slice(None), slice(1, None)))):
-        darker = log_e[there] - log_e[here] > step
-        cos = np.einsum("bhw,bhw->hw", unit[(slice(None), *here)], unit[(slice(None), *there)])
-        found[here] |= darker & (cos < cos_max)
+    whole, head, tail = slice(None), slice(1, None), slice(None, -1)
+    for here, there in (((head, whole), (tail, whole)), ((tail, whole), (head, whole)),
+                        ((whole, head), (whole, tail)), ((whole, tail), (whole, head))):
+        step_down = log_e[there] - log_e[here] > step
+        if shapes is not None:
+            step_down &= np.einsum("bhw,bhw->hw", shapes[(whole, *here)], shapes[(whole, *there)]) < cos_max
+        found[here] |= step_down
     return found
 
 
@@ -464,7 +457,7 @@ class SpectralSegmenter:
         for key, step in (("edge_step", edge_step), ("blend_filter_step", blend_filter_step),
                           ("blend_filter_angle", blend_filter_angle)):
             if not (isinstance(step, int | float) and step >= 0 and np.isfinite(step)):
-                raise AnalysisInputError(key, f"must be a finite number ≥ 0 (0 = no edge test), got {step!r}")
+                raise AnalysisInputError(key, f"must be a finite number ≥ 0 (0 = off), got {step!r}")
         self.edge_step = float(edge_step)
         self.blend_filter_step = float(blend_filter_step)
         self.blend_filter_angle = float(blend_filter_angle)
@@ -881,10 +874,8 @@ class SpectralSegmenter:
             averaged = per
             averaged_over = fg & ~rel.saturated
             if self.blend_filter_step > 0:  # strong blends are not averaged in, as clipped pixels are not
-                step, angle = self.blend_filter_step, self.blend_filter_angle
-                blends = (garbled_blends(energy, unit, step, angle) if angle > 0
-                          else darker_than_a_neighbour(energy, step))
-                averaged_over &= ~blends
+                averaged_over &= ~darker_than_a_neighbour(energy, self.blend_filter_step, unit,
+                                                          self.blend_filter_angle)
             arr, radius = guided_denoise(arr, averaged_over, per)
             unit, energy, feats = self._features(arr)
             noise_deg = neighbour_angle_deg(unit, ndimage.binary_erosion(fg) & ~rel.unreliable)
@@ -943,10 +934,9 @@ class SpectralSegmenter:
         sample, per, noise_deg, raw_noise_deg = prep.sample, prep.per, prep.noise_deg, prep.raw_noise_deg
         labels = np.zeros(fg.shape, dtype=np.int32)
         fits: dict[int, Mixture] = {}
-        shared = mixture is not None and int(mixture.means_.shape[1]) == sample.shape[1]
         bic: dict[int, float] = {}
-        if shared:
-            assert mixture is not None
+        shared = mixture is not None and int(mixture.means_.shape[1]) == sample.shape[1]
+        if mixture is not None and shared:
             best = mixture
         else:
             best, bic = self._select(sample, fits=fits)
