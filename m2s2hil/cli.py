@@ -37,6 +37,9 @@ def _register() -> None:
     from m2s2hil.commands import synth  # the synthetic domain (m2s2hil.twin.synth)
 
     app.command("synth")(synth.synth_cmd)
+    from m2s2hil.commands import kernels  # compile-kernels: numba's cache filled ahead of the first frame
+
+    app.command("compile-kernels")(kernels.compile_kernels_cmd)
 
 
 _register()

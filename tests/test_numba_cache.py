@@ -80,7 +80,7 @@ def _claim(role: str, env: dict[str, str]) -> subprocess.Popen:
 
 
 def test_xdist_workers_get_their_own_slots_under_a_cache_dir_given_from_outside(tmp_path):
-    """`pytest -n 2` with NUMBA_CACHE_DIR set (by CI, say): the workers inherit the same value, so
+    """`pytest -n 3` with NUMBA_CACHE_DIR set (by CI, say): the workers inherit the same value, so
     each claims a slot under it; a process that is no worker (a test's subprocess) keeps it as it is."""
     given = tmp_path / "given"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(given)}
@@ -96,3 +96,43 @@ def test_xdist_workers_get_their_own_slots_under_a_cache_dir_given_from_outside(
                 p.kill()
     assert [p.returncode for p in procs] == [0, 0, 0], errs
     assert dirs == [str(given / "slot-0"), str(given / "slot-1"), str(given)]
+
+
+LOAD = '''
+import os, sys
+if len(sys.argv) > 1:
+    os.environ["NUMBA_CACHE_DIR"] = sys.argv[1]
+sys.path.insert(0, {pkg!r})
+import numpy as np
+import kernel
+kernel.twice_sum(np.arange(3.0))
+print(sum(kernel.twice_sum.stats.cache_hits.values()), flush=True)
+'''
+
+
+@pytest.mark.slow  # two interpreters importing numba, one compiling: ~3 s
+def test_a_fresh_slot_is_seeded_from_the_package_cache(tmp_path):
+    """What a run without NUMBA_CACHE_DIR (or `m2s2hil compile-kernels`) compiled into __pycache__
+    is copied into a new slot, so a test process there loads the kernel instead of compiling it."""
+    from numba_cache import seed_slot
+
+    tree = tmp_path / "tree"
+    pkg = tree / "simulators"  # one of the package-dir mapping's folders
+    pkg.mkdir(parents=True)
+    (pkg / "kernel.py").write_text(KERNEL)
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    code = LOAD.format(pkg=str(pkg))
+    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0 and first.stdout.split() == ["0"], first.stderr  # compiled, in tree
+    assert len(list((pkg / "__pycache__").glob("kernel.twice_sum-*.nbi"))) == 1
+
+    slot = tmp_path / "caches" / "slot-0"
+    assert seed_slot(slot, tree) == 1
+    assert seed_slot(slot, tree) == 0  # up to date: nothing copied again
+    loaded = subprocess.run([sys.executable, "-c", code, str(slot)], env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert loaded.returncode == 0 and loaded.stdout.split() == ["1"], loaded.stderr  # a cache hit
+    # The package's cache changes (a newer index): the slot takes the new one.
+    index = next((pkg / "__pycache__").glob("*.nbi"))
+    os.utime(index, (index.stat().st_atime, index.stat().st_mtime + 10))
+    assert seed_slot(slot, tree) == 1
