@@ -107,3 +107,40 @@ def test_frames_of_other_exposures_are_scaled_to_one(scenes):
         scaled.analyse(shown[0])
     with pytest.raises(AnalysisInputError, match=r"exposures\[1\]"):
         SweepSegmenter().fit(scenes[:2], exposures=[1.0, 0.0])
+
+
+@pytest.mark.slow  # one 1024² simulator frame
+@pytest.mark.timeout(240)
+def test_an_over_exposed_frame_gives_the_sweep_only_its_clean_pixels():
+    # ISS B1 (one material) at 150 % of full scale, seed 2, 180°: nearly all of it is clipped, so
+    # fewer than MIN_FIT_PIXELS homogeneous pixels are clean and a frame alone falls back to its
+    # reliable pixels: mostly the mosaic's blends beside clipped cells, a band near zero beside
+    # bands near full scale. Pooled into a sweep they became materials of their own (K 3 for 1).
+    frame = next(iter(simulated_frames(satellites=["iss"], builds=["B1"], lightings=["weak"],
+                                       elevations=["E1"], azimuths=[180.0], size=1024, peak_fraction=1.5,
+                                       seed=2)))
+    sweep = SweepSegmenter()
+    alone = sweep.frame.fit_sample(frame.cube)
+    clean = sweep.frame.fit_sample(frame.cube, clean_only=True)
+    assert alone is not None and clean is not None
+
+    def garbled(rows: np.ndarray) -> int:  # a band under 5 % of the unit spectrum's length
+        return int((rows[:, :-1] < 0.05).any(axis=1).sum())
+
+    assert garbled(alone) > alone.shape[0] // 2  # the fallback: mostly blends
+    assert clean.shape[0] < alone.shape[0] and garbled(clean) <= clean.shape[0] // 10
+
+
+def test_a_sweep_without_enough_clean_pixels_is_fitted_on_each_frames_fallback():
+    # Two 12×12 frames of one flat material, every pixel saturated by the given mask: no clean fit
+    # pixel anywhere, so the sweep is read again as frames alone would be and still fitted.
+    noise = np.random.default_rng(0).normal(0, 0.5, (4, 12, 12)).astype(np.float32)
+    cube = np.full((4, 12, 12), 100.0, np.float32) + noise
+    cube[:, :2] = 0.0  # a backdrop
+    mask = np.zeros((12, 12), bool)
+    mask[2:] = True
+    sweep = SweepSegmenter()
+    assert sweep.frame.fit_sample(cube, saturated=mask, clean_only=True).shape[0] == 0
+    model = sweep.fit([cube, cube], saturated=[mask, mask])
+    assert model.rows > 0 and model.frames == 2
+    assert all(a.n_materials == 1 for a in sweep.analyse_sweep([cube, cube], saturated=[mask, mask]))

@@ -816,12 +816,17 @@ class SpectralSegmenter:
                 return prep
             return self._label(prep, mixture)
 
-    def fit_sample(self, cube: object, *, saturated: np.ndarray | None = None) -> np.ndarray | None:
+    def fit_sample(self, cube: object, *, saturated: np.ndarray | None = None, clean_only: bool = False
+                   ) -> np.ndarray | None:
         """The rows ``(n, features)`` the mixture would be fitted on for ``cube`` (its fit pixels'
-        features, at most ``sample_size``); None for a cube without foreground or with one band."""
+        features, at most ``sample_size``); None for a cube without foreground or with one band.
+        With ``clean_only`` a cube with fewer than ``MIN_FIT_PIXELS`` clean fit pixels (homogeneous,
+        neither saturated nor near-black) gives those, not its reliable pixels or its whole
+        foreground as ``analyse`` falls back to: in an over-exposed frame those are mostly the
+        mosaic's blends beside clipped cells, shapes of no material (a sweep has other frames)."""
         arr = as_cube(cube)
         with self._threads():
-            prep = self._prepare(arr, saturated)
+            prep = self._prepare(arr, saturated, clean_only=clean_only)
         return None if isinstance(prep, SpectralSegmentation) else prep.sample
 
     def select(self, sample: np.ndarray) -> tuple[Mixture, dict[int, float]]:
@@ -836,10 +841,11 @@ class SpectralSegmenter:
     def _threads(self) -> AbstractContextManager[object]:
         return nullcontext() if self.blas_threads is None else threadpool_limits(limits=self.blas_threads)
 
-    def _prepare(self, arr: np.ndarray, saturated: np.ndarray | None = None
+    def _prepare(self, arr: np.ndarray, saturated: np.ndarray | None = None, *, clean_only: bool = False
                  ) -> _Prepared | SpectralSegmentation:
         """Everything before the mixture: foreground, reliability, denoising, features and the fit
-        sample; a cube with nothing to fit comes back finished (a ``SpectralSegmentation``)."""
+        sample; a cube with nothing to fit comes back finished (a ``SpectralSegmentation``).
+        ``clean_only``: the fit pixels are the clean ones however few (see ``fit_sample``)."""
         h, w = arr.shape[1:]
         if self.white is not None:
             arr = normalise_cube(arr, white=self.white)
@@ -910,9 +916,9 @@ class SpectralSegmenter:
                 fit = fit & ~edges
         if rel is not None and pooled is None:
             fit = fit & ~rel.unreliable
-            if int(fit.sum()) < MIN_FIT_PIXELS:
+            if int(fit.sum()) < MIN_FIT_PIXELS and not clean_only:
                 fit = fg & ~rel.unreliable
-        if pooled is None and int(fit.sum()) < MIN_FIT_PIXELS:  # too few clean pixels: use them all
+        if pooled is None and int(fit.sum()) < MIN_FIT_PIXELS and not clean_only:  # too few: use them all
             fit = fg
         if stride > 1:  # keep the fit pixels of a coarse grid (denoised pixels are not independent)
             grid = np.zeros_like(fit)

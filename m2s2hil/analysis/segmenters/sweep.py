@@ -7,8 +7,10 @@ hangs on the few pixels one view gives them (Voyager B3 at 5 % peak: K within ±
 frames, 2 materials short on average; docs/evaluation.md, "The goal on the whole sweep"). Pooled
 over the sweep, a part seen from any side adds its pixels to the fit.
 
-``SweepSegmenter.fit(cubes)`` takes each cube's fit rows as ``SpectralSegmenter`` makes them
-(``fit_sample``: foreground, reliability, denoising, homogeneous interior), an equal share of
+``SweepSegmenter.fit(cubes)`` takes each cube's clean fit rows as ``SpectralSegmenter`` makes them
+(``fit_sample(clean_only=True)``: foreground, reliability, denoising, homogeneous interior, none
+of a frame's fallbacks to unreliable pixels, which in an over-exposed frame are the mosaic's
+blends beside clipped cells and, pooled, split ISS B1 at 150 % peak), an equal share of
 ``sweep_sample_size`` rows from every frame (a frame with fewer gives all of its rows), and selects
 one mixture on them (``SpectralSegmenter.select``: BIC over 1..``max_materials``). ``analyse(cube)``
 then labels a frame with that mixture: merging, the weight floor, the interior test, saturated
@@ -47,7 +49,12 @@ import numpy as np
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.segmenters.spectral import Mixture, SpectralSegmentation, SpectralSegmenter
+from m2s2hil.analysis.segmenters.spectral import (
+    MIN_FIT_PIXELS,
+    Mixture,
+    SpectralSegmentation,
+    SpectralSegmenter,
+)
 
 SWEEP_SAMPLE_SIZE = 5_000
 #: the frame segmenter's settings unless told otherwise: blends inside the object out of the fit
@@ -89,28 +96,45 @@ class SweepSegmenter:
         self.frame = SpectralSegmenter(**{**SWEEP_FRAME_OPTIONS, **options})  # type: ignore[arg-type]
         self.model: SweepModel | None = None
 
-    def fit(self, cubes: Iterable[object], *, exposures: Iterable[float] | None = None) -> SweepModel:
+    def fit(self, cubes: Iterable[object], *, exposures: Iterable[float] | None = None,
+            saturated: Iterable[np.ndarray | None] | None = None) -> SweepModel:
         """Pool an equal share of every cube's fit rows and select the sweep's mixture. ``exposures``
         (seconds × gain, one a cube): each cube is scaled to the first one's, so the brightness
-        coordinate of a material is the same in every frame."""
+        coordinate of a material is the same in every frame. ``saturated``: the processor's clipping
+        mask of each cube (or None), as ``analyse`` takes it.
+
+        A frame gives only its clean fit pixels (``fit_sample(clean_only=True)``); only when the
+        whole sweep has fewer than ``MIN_FIT_PIXELS`` of them are the frames' rows as each would be
+        fitted alone used instead (kept aside, small, for frames with fewer than that)."""
         times = None if exposures is None else iter(exposures)
+        masks = None if saturated is None else iter(saturated)
         reference: float | None = None
-        samples: list[np.ndarray] = []
+        clean: list[np.ndarray] = []  # each frame's clean rows
+        fallback: list[np.ndarray] = []  # each frame's rows as it would be fitted alone
         empty = 0
-        for i, cube in enumerate(cubes):
+        for i, cube in enumerate(cubes):  # one frame in memory at a time: each is read once
             t = None if times is None else _exposure(next(times, None), i)
+            mask = None if masks is None else next(masks, None)
             try:
                 arr = as_cube(cube)
                 if t is not None:
                     reference = reference or t
                     arr = arr * np.float32(reference / t)
-                rows = self.frame.fit_sample(arr)
+                rows = self.frame.fit_sample(arr, saturated=mask, clean_only=True)
+                alone = rows
+                if rows is not None and rows.shape[0] < MIN_FIT_PIXELS:  # it would fall back alone
+                    alone = self.frame.fit_sample(arr, saturated=mask)
             except AnalysisInputError as exc:
                 raise AnalysisInputError(f"sweep frame {i}", exc.problem) from exc
-            if rows is None or rows.shape[0] == 0:
+            if alone is None or alone.shape[0] == 0:
                 empty += 1
                 continue
-            samples.append(rows)
+            assert rows is not None
+            clean.append(rows)
+            fallback.append(alone)
+        enough = sum(r.shape[0] for r in clean) >= MIN_FIT_PIXELS
+        samples = [r for r in clean if r.shape[0] > 0] if enough else fallback
+        empty += len(clean) - len(samples)
         if not samples:
             problem = f"none of the {empty} frames has foreground to fit" if empty else "no frames to fit"
             raise AnalysisInputError("cubes", problem)
@@ -150,12 +174,14 @@ class SweepSegmenter:
     def segment(self, cube: np.ndarray) -> np.ndarray:
         return self.analyse(cube).labels
 
-    def analyse_sweep(self, cubes: list[object], exposures: list[float] | None = None
-                      ) -> list[SpectralSegmentation]:
+    def analyse_sweep(self, cubes: list[object], exposures: list[float] | None = None,
+                      saturated: list[np.ndarray | None] | None = None) -> list[SpectralSegmentation]:
         """Fit on ``cubes``, then label each."""
-        self.fit(cubes, exposures=exposures)
+        self.fit(cubes, exposures=exposures, saturated=saturated)
         times: list[float | None] = [None] * len(cubes) if exposures is None else list(exposures)
-        return [self.analyse(c, exposure_s=t) for c, t in zip(cubes, times, strict=True)]
+        masks: list[np.ndarray | None] = [None] * len(cubes) if saturated is None else list(saturated)
+        return [self.analyse(c, exposure_s=t, saturated=m)
+                for c, t, m in zip(cubes, times, masks, strict=True)]
 
 
 def _exposure(value: object, index: int) -> float:
