@@ -46,8 +46,8 @@ OUT = ROOT / "docs" / "images"
 K_GOAL, DICE_GOAL = 0.9, -0.05
 
 
-def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | None = None, seed: int = 0
-             ) -> list[dict[str, Any]]:
+def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | None = None, seed: int = 0,
+             masks: bool = False) -> list[dict[str, Any]]:
     """The nine builds of one view under ``cell``'s condition, segmented by the default."""
     from threadpoolctl import threadpool_limits
 
@@ -61,7 +61,7 @@ def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | Non
     with threadpool_limits(1):
         for f in simulated_frames(builds=("B1", "B2", "B3"), elevations=("E1",), azimuths=(azimuth,), **kw):
             t0 = time.process_time()
-            a = SpectralSegmenter(**(options or {})).analyse(f.cube)
+            a = SpectralSegmenter(**(options or {})).analyse(f.cube, saturated=f.saturated if masks else None)
             rows.append({"pose": f"{f.name.split('_')[0]}_{f.build}_{azimuth:g}", "azimuth": azimuth,
                          "k": a.n_materials, "true": visible_materials(f.gt),
                          "dice": float(score_clusters(f.gt, a.labels)[0].macro_dice),
@@ -70,7 +70,8 @@ def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | Non
 
 
 def run_cell_sweep(cell: str, azimuths: list[float], size: int, sample_size: int,
-                   options: dict[str, Any] | None = None, seed: int = 0) -> list[dict[str, Any]]:
+                   options: dict[str, Any] | None = None, seed: int = 0, masks: bool = False
+                   ) -> list[dict[str, Any]]:
     """Every view of ``cell``, rendered as ``run_view`` renders them; one ``SweepSegmenter`` mixture
     per satellite and build over its views, then each frame labelled with it."""
     from threadpoolctl import threadpool_limits
@@ -91,7 +92,8 @@ def run_cell_sweep(cell: str, azimuths: list[float], size: int, sample_size: int
             t0 = time.process_time()
             seg = SweepSegmenter(sweep_sample_size=sample_size, **(options or {}))
             # each frame's exposure is set for its own peak (simframes): scaled to one for the sweep
-            found = seg.analyse_sweep([f.cube for f in frames], [f.exposure_s for f in frames])
+            found = seg.analyse_sweep([f.cube for f in frames], [f.exposure_s for f in frames],
+                                      [f.saturated for f in frames] if masks else None)
             per = (time.process_time() - t0) / len(frames)
             assert seg.model is not None
             for f, a in zip(frames, found, strict=True):
@@ -224,6 +226,8 @@ def main() -> None:
     ap.add_argument("--name", help="output file stem (default robustness_wide[_sweep])")
     ap.add_argument("--beside", type=Path, help="a results JSON drawn beside this run's bars")
     ap.add_argument("--seed", type=int, default=0, help="the simulator's noise seed")
+    ap.add_argument("--masks", action="store_true",
+                    help="give the segmenter the processor's clipping masks (evaluate has none to give)")
     ap.add_argument("--cells", type=lambda v: v.split(","), default=None,
                     help="comma-separated cells to run (default: the goal's nine)")
     args = ap.parse_args()
@@ -235,7 +239,7 @@ def main() -> None:
     t0 = time.time()
     cells: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     with ProcessPoolExecutor(args.workers) as pool:
-        jobs = {(n, a): pool.submit(run_view, n, a, args.size, args.options, args.seed)
+        jobs = {(n, a): pool.submit(run_view, n, a, args.size, args.options, args.seed, args.masks)
                 for n in names for a in azimuths}
         for (n, _), job in jobs.items():
             cells[n].extend(job.result())
@@ -268,7 +272,7 @@ def record(args: argparse.Namespace, cells: dict[str, list[dict[str, Any]]], t0:
     meta = {"machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
             "python": platform.python_version(), "date": datetime.now(UTC).isoformat(timespec="minutes"),
             "size": args.size, "azimuth_step": args.step, "wall_s": round(time.time() - t0),
-            "options": args.options, "seed": args.seed, **meta}
+            "options": args.options, "seed": args.seed, "masks": args.masks, **meta}
     args.out.mkdir(parents=True, exist_ok=True)
     raw = json.dumps({"meta": meta, "cells": cells}, indent=0) + "\n"
     (args.out / f"{stem}.json").write_text(raw)
@@ -284,7 +288,7 @@ def sweep_main(args: argparse.Namespace) -> None:
     t0 = time.time()
     with ProcessPoolExecutor(args.workers) as pool:
         jobs = {n: pool.submit(run_cell_sweep, n, azimuths, args.size, args.sweep_sample_size, args.options,
-                               args.seed) for n in names}
+                               args.seed, args.masks) for n in names}
         cells = {n: job.result() for n, job in jobs.items()}
     summary = record(args, cells, t0, args.name or "robustness_wide_sweep", variant="sweep",
                      sweep_sample_size=args.sweep_sample_size)

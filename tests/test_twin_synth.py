@@ -278,8 +278,11 @@ def test_daemon_aborts_a_render_and_cancels_a_waiting_one(tmp_path):
     long = {**SYNTH_BODY, "tilts": [], "azimuth_step_deg": 5}  # 4 elevations × 72 azimuths
     with daemon(tmp_path / "data", queue_limit=1) as d:
         first = d.client.post("/synthetic", json=long).json()["session_id"]
+        # the render thread takes the first off the queue (later on a loaded machine): only then
+        # is the one place in the queue free for the second
+        d.wait(first, lambda st: st["state"] != "queued")
         second = d.client.post("/synthetic", json=long).json()
-        assert second["state"] == "queued" and second["queue_position"] == 1
+        assert second["state"] == "queued" and second["queue_position"] == 1, second
         full = d.client.post("/synthetic", json=long)
         assert full.status_code == 429 and "already wait to render (limit 1)" in full.json()["detail"]
         r = d.client.post(f"/sessions/{second['session_id']}/abort")
