@@ -26,7 +26,9 @@ from xdist.scheduler import LoadScopeScheduling
 KERNEL_MODULES = frozenset({"test_demosaic.py", "test_calibration.py", "test_processing_pipeline.py",
                             "test_processing_stability.py",
                             # PPID's and WB's kernels, uint16 and float32, against a NumPy reference
-                            "test_ppid_fused.py"})
+                            "test_ppid_fused.py",
+                            # compile-kernels runs every method (cold only where .ci/run's step was skipped)
+                            "test_warmup.py"})
 SHARED_SCOPES = frozenset({"module", "class", "package"})
 
 
