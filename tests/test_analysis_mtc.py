@@ -186,3 +186,25 @@ def test_resampled_spectral_segmenter_is_stable_on_a_clear_scene() -> None:
     cube, _ = synthetic_scene((48, 48), n_materials=3, noise=0.005, seed=1)
     r = mtc(ResampledFit(SpectralSegmenter(max_materials=5)), cube, k=4, align=True)
     assert r.score > 0.95
+
+
+def test_the_clipping_mask_moves_with_each_shift() -> None:
+    """A predictor that labels by the mask alone is stable only if the mask is shifted with the
+    cube: it belongs to the pixels."""
+    cube = np.zeros((2, 12, 12))
+    mask = np.zeros((12, 12), bool)
+    mask[3:7, 2:9] = True
+    seen = []
+
+    def by_mask(x: np.ndarray, *, saturated: np.ndarray) -> np.ndarray:
+        seen.append(saturated.copy())
+        return saturated.astype(np.int64)
+
+    r = mtc(by_mask, cube, shifts=[(2, 1), (-3, 0)], saturated=mask)
+    assert r.score == 1.0
+    np.testing.assert_array_equal(seen[1], translate(mask, 2, 1))
+    np.testing.assert_array_equal(seen[2], translate(mask, -3, 0))
+    fixed = mtc(lambda x: mask.astype(np.int64), cube, shifts=[(2, 1)])  # a mask left in place
+    assert fixed.score < 0.75
+    with pytest.raises(AnalysisInputError, match="saturated"):
+        mtc(by_mask, cube, saturated=mask[:5])

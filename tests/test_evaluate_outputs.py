@@ -13,6 +13,7 @@ from m2s2hil.analysis.bands import select_bands_pca
 from m2s2hil.analysis.evaluation import evaluate, table2
 from m2s2hil.analysis.evaluation.evaluate import EvaluationResult, band_report, evaluate_job
 from m2s2hil.analysis.evaluation.jobs import FrameJob
+from m2s2hil.analysis.evaluation.loading import LoadedFrame
 from m2s2hil.analysis.evaluation.options import EvalOptions, mtc_predictor
 from m2s2hil.analysis.report import charts
 from m2s2hil.analysis.report.evaluation_files import json_safe, write_evaluation
@@ -44,7 +45,8 @@ def job(n_classes: int = 4) -> FrameJob:
 @pytest.fixture
 def scene(monkeypatch):
     cube, gt = synthetic_scene((32, 32), 3, seed=4)
-    monkeypatch.setattr(evaluate, "load_cube", lambda _job, _reprocess=None: cube)
+    frame = LoadedFrame(cube, None)  # no raw frame: no clipping mask
+    monkeypatch.setattr(evaluate, "load_frame", lambda _job, _reprocess=None, masks=True: frame)
     monkeypatch.setattr(evaluate, "load_truth", lambda _job, _shape: gt)
     return cube, gt
 

@@ -18,9 +18,8 @@ from m2s2hil.processing.demosaic import Demosaicer, get_demosaicer
 from m2s2hil.processing.errors import FrameShapeError, ProcessingError
 from m2s2hil.processing.mosaic import MosaicLayout
 from m2s2hil.processing.stability import (
-    cell_mask,
     check_phase,
-    grow_mask,
+    cube_saturation,
     low_light_warning,
     phase_warning,
     saturation_count_warning,
@@ -138,12 +137,8 @@ class FrameProcessor:
             self._cal.apply(cube)
             warnings.extend(self._cal.warnings)
         if sat.any():
-            radius = self.demosaicer.support_radius
-            if self.demosaicer.full_resolution:
-                grow_mask(sat, radius, out=self._cube_sat)
-            else:
-                cell_mask(sat, self.layout.n, out=self._cube_sat)
-            msg = saturation_warning(sat, self.full_scale, radius)
+            cube_saturation(sat, self.demosaicer.name, self.layout.n, out=self._cube_sat)
+            msg = saturation_warning(sat, self.full_scale, self.demosaicer.support_radius)
             if msg:
                 warnings.append(msg)
         elif self._cube_sat.any():

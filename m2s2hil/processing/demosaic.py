@@ -16,6 +16,7 @@ from numba import get_num_threads, parallel_chunksize
 from m2s2hil.config import DEMOSAIC_METHODS, check_demosaic_method
 from m2s2hil.processing.errors import FrameShapeError, LayoutError, UnknownMethodError
 from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.processing.stability import support_radius
 from m2s2hil.processing.streaming import aligned_empty
 
 #: The method names, known below processing (the rig file checks them without importing numba);
@@ -52,8 +53,9 @@ class Demosaicer(ABC):
 
     @property
     def support_radius(self) -> int:
-        """How far (in raw pixels) one raw value can reach in the output: used to grow saturation masks."""
-        return self.layout.n - 1
+        """How far (in raw pixels) one raw value can reach in the output: used to grow saturation
+        masks (``stability.support_radius``, one table for every method)."""
+        return support_radius(self.name, self.layout.n)
 
     def _blocks(self, rows: int) -> int:
         return max(1, min(rows, 8 * get_num_threads()))

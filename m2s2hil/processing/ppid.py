@@ -60,12 +60,6 @@ class PPIDDemosaicer(Demosaicer):
         self._tile = layout.array[:, np.arange(w) % layout.n]
         self._nblocks = self._blocks(h // layout.n)
 
-    @property
-    def support_radius(self) -> int:
-        # R − PPI at a sample s reads R within n + 1 of s and PPI0 at s ± n, itself R within n − 1
-        # of those (2n − 1 in all); WB of the differences reaches samples n − 1 away: 3n − 2.
-        return 3 * self.layout.n - 2
-
     def band_gains(self, mosaic: np.ndarray) -> np.ndarray:
         """Per-band gains that bring every band's mean to the common mean (1 where a band is empty)."""
         mu = sublattice_means(mosaic, self.layout.n)

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from m2s2hil.config import check_demosaic_method
+from m2s2hil.processing.errors import UnknownMethodError
 from m2s2hil.processing.mosaic import MosaicLayout
 
 LOW_SNR = 5.0
@@ -121,6 +123,49 @@ def phase_warning(check: PhaseCheck) -> str | None:
         "pixels; check the "
         "sensor readout offset / ROI and the layout in the calibration file"
     )
+
+
+#: How far one raw value reaches in each method's cube, in raw pixels, for an n×n mosaic
+#: (``support_radius``); ``superpixel`` gives one value per cell, so a clipped raw pixel spoils
+#: exactly its own cell. The demosaicers read their radius here, so the evaluation can rebuild a
+#: stored cube's clipping mask from its raw frame without building one (or importing numba).
+_REACH: dict[str, tuple[bool, int, int]] = {  # method: (full resolution, a, b): radius = a·n + b
+    "superpixel": (False, 0, 0),
+    "nearest": (True, 1, -1),
+    "wb": (True, 1, -1),
+    # R − PPI at a sample s reads R within n + 1 of s and PPI0 at s ± n, itself R within n − 1 of
+    # those (2n − 1 in all); WB of the differences reaches samples n − 1 away: 3n − 2.
+    "ppid": (True, 3, -2),
+}
+
+
+def _reach(method: str) -> tuple[bool, int, int]:
+    return _REACH[check_demosaic_method(method, UnknownMethodError)]
+
+
+def support_radius(method: str, n: int) -> int:
+    """How far (raw pixels) one raw value of an n×n mosaic reaches in ``method``'s cube."""
+    _, a, b = _reach(method)
+    return max(0, a * n + b)
+
+
+def full_resolution(method: str) -> bool:
+    """True when ``method``'s cube has the sensor's resolution, False for one value per cell."""
+    return _reach(method)[0]
+
+
+def cube_saturation(raw_mask: np.ndarray, method: str, n: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The cube's clipping mask from the raw one: grown by the method's support at full resolution,
+    one flag per n×n cell for super-pixel (``FrameProcessor``'s ``saturated_mask``)."""
+    if full_resolution(method):
+        return grow_mask(raw_mask, support_radius(method, n), out=out)
+    return cell_mask(raw_mask, n, out=out)
+
+
+def saturation_from_raw(raw: np.ndarray, method: str, n: int, full_scale: int) -> np.ndarray:
+    """The clipping mask ``FrameProcessor.process`` gives with ``raw`` (raw pixels at full scale,
+    before any dark subtraction), without demosaicing: for a stored cube, rebuilt from its raw frame."""
+    return cube_saturation(np.asarray(raw) >= full_scale, method, n)
 
 
 def grow_mask(raw_mask: np.ndarray, radius: int, out: np.ndarray | None = None) -> np.ndarray:

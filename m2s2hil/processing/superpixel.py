@@ -38,10 +38,6 @@ class SuperPixelDemosaicer(Demosaicer):
         super().__init__(layout, shape)
         self._tables = position_tables(layout)
 
-    @property
-    def support_radius(self) -> int:
-        return 0  # a saturated raw pixel spoils exactly its own cell
-
     def _run(self, mosaic: np.ndarray) -> None:
         # serial on purpose: the work is memory-bound (a second thread gains little even on an idle
         # machine), and on a shared one a parallel region can wait several ms for a descheduled

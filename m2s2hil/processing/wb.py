@@ -97,9 +97,5 @@ class WBDemosaicer(Demosaicer):
         self._tables = WBTables(layout, self.shape[1])
         self._nblocks = self._blocks(self.shape[0] // layout.n)
 
-    @property
-    def support_radius(self) -> int:
-        return self.layout.n - 1
-
     def _run(self, mosaic: np.ndarray) -> None:
         self._tables.run(mosaic, self.out, self._nblocks)

@@ -28,7 +28,9 @@ def per_image_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
                 "lighting",
                 "azimuth_deg",
                 "has_truth",
+                "clipped_fraction",
                 "error",
+                "mask_error",
             )
         }
         if not r.get("results"):

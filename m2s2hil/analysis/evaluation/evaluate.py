@@ -13,6 +13,10 @@ Per image (``evaluate_job``):
   through ``processing.FrameProcessor`` (the session's dark and method, or ``reprocess=``);
   exported datasets are processed from their PNG mosaic (``HIL16`` when present), without
   dark subtraction;
+- clipping mask (``EvalOptions.clip_masks``, on by default): the processor's, when the raw is
+  processed here; for a stored cube, rebuilt from its raw frame (``loading.stored_saturation``).
+  Segmenters that take it (``segmenters.masks``) get it, and label mTC shifts it with the cube;
+  ``clipped_fraction`` in the per-image rows is its share of the image;
 - ground truth: the simulator's label map the engine stored with the frame
   (``extra`` role ``truth_labels``, sensor resolution), reduced to the cube's grid by the
   majority label of each n×n cell (``labels_to_cube``); images without it get mTC only;
@@ -48,7 +52,7 @@ import numpy as np
 
 from m2s2hil.analysis.bands import PAPER_BANDS, select_bands_pca
 from m2s2hil.analysis.evaluation.jobs import EvaluationError, FrameJob
-from m2s2hil.analysis.evaluation.loading import load_cube, load_projected, load_truth
+from m2s2hil.analysis.evaluation.loading import load_frame, load_projected, load_truth
 from m2s2hil.analysis.evaluation.options import (
     EvalOptions,
     cached_segmenter,
@@ -61,6 +65,7 @@ from m2s2hil.analysis.evaluation.sweeps import fit_sweeps, sweep_cube
 from m2s2hil.analysis.metrics.band_stability import band_stability
 from m2s2hil.analysis.metrics.mtc import mtc
 from m2s2hil.analysis.metrics.scores import score_clusters
+from m2s2hil.analysis.segmenters.masks import segment_masked, takes_saturated
 from m2s2hil.analysis.segmenters.spectral import foreground_mask
 
 log = logging.getLogger(__name__)
@@ -74,10 +79,11 @@ def _error(exc: BaseException) -> str:
 
 def _segmenter_result(
     name: str, cube: np.ndarray, gt: np.ndarray | None, job: FrameJob, options: EvalOptions, bands_nm: Any,
-    projected: np.ndarray | None = None,
+    projected: np.ndarray | None = None, saturated: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """One segmenter on one image. Each step (segmentation, scores, mTC) fails on its own: its error
-    is recorded under ``errors`` and the other steps' values are kept."""
+    is recorded under ``errors`` and the other steps' values are kept. ``saturated``: the image's
+    clipping mask, given to a segmenter that takes it (``segmenters.masks``)."""
     res: dict[str, Any] = {}
     errors: dict[str, str] = {}
     try:
@@ -89,7 +95,7 @@ def _segmenter_result(
             seg.use(model)  # type: ignore[attr-defined]
             cube = sweep_cube(cube, job)  # at the exposure the sweep was fitted at
         t1 = time.perf_counter()
-        pred = seg.segment(cube)
+        pred = segment_masked(seg, cube, saturated)
         res["time_s"] = time.perf_counter() - t1
         res["n_segments"] = len(np.unique(pred[pred > 0]))
     except Exception as exc:  # reported per segmenter; the image's other segmenters still run
@@ -113,8 +119,10 @@ def _segmenter_result(
             predict, align = mtc_predictor(
                 seg, name, options.mtc_mode, cube.shape[0], n_classes=job.n_classes, bands=options.mtc_bands
             )
+            # the mask moves with each shift; the binary setting segments bands one by one, without it
+            masked = options.mtc_mode == "labels" and takes_saturated(seg.segment)
             t2 = time.perf_counter()
-            r = mtc(predict, cube, align=align)
+            r = mtc(predict, cube, align=align, saturated=saturated if masked else None)
             res.update(mtc=r.score, mtc_time_s=time.perf_counter() - t2)
         except Exception as exc:
             log.warning("mTC of %s on %s failed: %s", name, job.image_id, exc)
@@ -155,7 +163,8 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
     }
     try:
         t0 = time.perf_counter()
-        cube = load_cube(job, options.reprocess)
+        frame = load_frame(job, options.reprocess, masks=options.clip_masks)
+        cube, saturated = frame.cube, frame.saturated
         gt = load_truth(job, cube.shape[1:])
         rec["load_s"] = time.perf_counter() - t0
         rec["has_truth"] = gt is not None
@@ -164,6 +173,9 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
         log.warning("evaluation of %s failed: %s", job.image_id, exc)
         rec["error"] = _error(exc)
         return rec
+    if frame.mask_error:
+        rec["mask_error"] = frame.mask_error
+    rec["clipped_fraction"] = None if saturated is None else float(saturated.mean())
     bands_nm = job.camera.get("bands_nm") or ()
     projected = None
     try:
@@ -172,7 +184,7 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
         rec["projected_error"] = _error(exc)
     rec["has_projected"] = projected is not None
     for name in options.segmenters:
-        rec["results"][name] = _segmenter_result(name, cube, gt, job, options, bands_nm, projected)
+        rec["results"][name] = _segmenter_result(name, cube, gt, job, options, bands_nm, projected, saturated)
     try:
         rec["pca_sample"] = pca_sample(cube)
     except Exception as exc:

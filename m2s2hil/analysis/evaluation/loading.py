@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +22,8 @@ import numpy as np
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.evaluation.jobs import EvaluationError, FileRef, FrameJob
 from m2s2hil.config import CameraModel
+from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.processing.stability import saturation_from_raw
 from m2s2hil.store.cubes import master_dark_from
 from m2s2hil.store.frame_files import decode_image, decode_tiff
 from m2s2hil.store.zarr_export import read_ref
@@ -100,24 +103,68 @@ def _processor(job: FrameJob, method: str, shape: tuple[int, int] | None = None)
     return proc
 
 
-def load_cube(job: FrameJob, reprocess: str | None = None) -> np.ndarray:
-    """The image's float32 cube (bands, H, W): stored, or processed from the raw."""
-    if job.cube is not None and reprocess is None:
-        cube, _ = decode_tiff(_read(job.cube))
-        return np.asarray(cube, dtype=np.float32)
-    if job.raw is None:
-        raise EvaluationError(f"{job.image_id}: neither a cube nor a raw mosaic to evaluate")
+def _load_raw(job: FrameJob) -> np.ndarray:
+    assert job.raw is not None
     data = _read(job.raw)
     if job.raw_kind == "png":
         raw = decode_image(data)
         if raw.ndim == 3:
             raw = raw[..., 0]
-        raw = raw.astype(np.uint16)
-        proc = _processor(job, reprocess or job.method, raw.shape)
-    else:
-        raw = decode_tiff(data)[0].astype(np.uint16)
-        proc = _processor(job, reprocess or job.method)
-    return np.array(proc.process(raw).cube, dtype=np.float32, copy=True)
+        return raw.astype(np.uint16)
+    return decode_tiff(data)[0].astype(np.uint16)
+
+
+@dataclass(frozen=True)
+class LoadedFrame:
+    """A job's cube with its clipping mask (None when the job has no raw frame to rebuild it from)."""
+
+    cube: np.ndarray  # float32 (bands, H, W)
+    saturated: np.ndarray | None  # bool (H, W): a band clipped (``ProcessedFrame.saturated_mask``)
+    mask_error: str | None = None  # why a stored cube's mask could not be rebuilt (the cube still counts)
+
+
+def stored_saturation(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:
+    """The clipping mask of the job's stored cube, rebuilt from its raw frame as the processor built
+    it at capture (``processing.stability.saturation_from_raw``: raw pixels at full scale, grown by
+    the method's support); None without a raw frame. A stored cube does not keep its mask."""
+    if job.raw is None:
+        return None
+    camera = CameraModel.model_validate(job.camera)
+    mask = saturation_from_raw(_load_raw(job), job.method, MosaicLayout.from_camera(camera).n,
+                               camera.full_scale)
+    if mask.shape != tuple(shape):
+        raise EvaluationError(f"{job.image_id}: the raw frame's clipping mask is {mask.shape} with the "
+                              f"{job.method!r} method, the stored cube {tuple(shape)}")
+    return mask
+
+
+def load_frame(job: FrameJob, reprocess: str | None = None, *, masks: bool = True) -> LoadedFrame:
+    """The image's float32 cube (bands, H, W), stored or processed from the raw, and (``masks``)
+    its clipping mask: the processor's when the raw is processed here, else rebuilt from the raw
+    (a raw frame that cannot be read leaves the mask out, with the reason, not the image)."""
+    if job.cube is not None and reprocess is None:
+        cube, _ = decode_tiff(_read(job.cube))
+        arr = np.asarray(cube, dtype=np.float32)
+        if arr.ndim != 3:
+            raise EvaluationError(f"{job.image_id}: the stored cube has shape {arr.shape}, not (bands, H, W)")
+        if not masks:
+            return LoadedFrame(arr, None)
+        try:
+            return LoadedFrame(arr, stored_saturation(job, arr.shape[1:]))
+        except Exception as exc:  # the segmenters fall back on the cube's own clipping test
+            return LoadedFrame(arr, None, f"{type(exc).__name__}: {exc}")
+    if job.raw is None:
+        raise EvaluationError(f"{job.image_id}: neither a cube nor a raw mosaic to evaluate")
+    raw = _load_raw(job)
+    proc = _processor(job, reprocess or job.method, raw.shape if job.raw_kind == "png" else None)
+    out = proc.process(raw)
+    return LoadedFrame(np.array(out.cube, dtype=np.float32, copy=True),
+                       np.array(out.saturated_mask, copy=True) if masks else None)
+
+
+def load_cube(job: FrameJob, reprocess: str | None = None) -> np.ndarray:
+    """The image's float32 cube (bands, H, W): stored, or processed from the raw."""
+    return load_frame(job, reprocess, masks=False).cube
 
 
 def load_truth(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:

@@ -51,6 +51,7 @@ class EvalOptions:
     reprocess: str | None = None  # demosaicing method: recompute cubes from the raw
     rho: float = 0.9
     mtc_bands: tuple[int, ...] = PAPER_BANDS  # 1-based bands of the binary mTC predictor
+    clip_masks: bool = True  # give segmenters each frame's clipping mask (segmenters.masks)
 
     def __post_init__(self) -> None:
         if self.mtc_for not in ("multi", "all", "none"):

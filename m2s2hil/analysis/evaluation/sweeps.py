@@ -19,6 +19,7 @@ exposure is left unscaled.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import Any
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from m2s2hil.analysis.evaluation.jobs import FrameJob
-from m2s2hil.analysis.evaluation.loading import load_cube
+from m2s2hil.analysis.evaluation.loading import load_frame
 from m2s2hil.analysis.evaluation.options import EvalOptions, is_sweep, make_segmenter
 from m2s2hil.analysis.evaluation.parallel import map_ordered
 
@@ -48,17 +49,44 @@ def fit_sweep(group: tuple[str, list[FrameJob]], options: EvalOptions) -> Any:
     bands_nm = next((j.camera.get("bands_nm") for j in jobs if j.camera.get("bands_nm")), None)
     try:
         seg = make_segmenter(name, options.segmenter_options, bands_nm=bands_nm)
+        # Each frame's clipping mask is handed over right after its cube: ``fit`` reads the two in
+        # step, so only one frame is ever in memory.
+        masks = _Handover()
 
         def cubes() -> Iterator[np.ndarray]:
             for job in jobs:
                 try:
-                    yield sweep_cube(load_cube(job, options.reprocess), job)
+                    frame = load_frame(job, options.reprocess, masks=options.clip_masks)
                 except Exception as exc:  # reported by the image's own job
                     log.warning("sweep fit of %s: %s left out: %s", name, job.image_id, exc)
+                    continue
+                masks.put(frame.saturated)
+                yield sweep_cube(frame.cube, job)
 
-        return seg.fit(cubes())  # type: ignore[attr-defined]
+        if not options.clip_masks:
+            return seg.fit(cubes())  # type: ignore[attr-defined]
+        return seg.fit(cubes(), saturated=masks)  # type: ignore[attr-defined]
     except Exception as exc:  # the sweep's images report it as this segmenter's error
         return f"{type(exc).__name__}: the sweep's mixture could not be fitted: {exc}"
+
+
+class _Handover:
+    """The masks of the frames read so far, taken one at a time: an iterator that is not exhausted
+    when empty, because the next mask is put in only when the next cube is read."""
+
+    def __init__(self) -> None:
+        self._pending: deque[np.ndarray | None] = deque()
+
+    def put(self, mask: np.ndarray | None) -> None:
+        self._pending.append(mask)
+
+    def __iter__(self) -> _Handover:
+        return self
+
+    def __next__(self) -> np.ndarray | None:
+        if not self._pending:
+            raise StopIteration
+        return self._pending.popleft()
 
 
 def sweep_cube(cube: np.ndarray, job: FrameJob) -> np.ndarray:

@@ -22,6 +22,9 @@ returning an ``(H, W)`` label map:
   binary maps, where ids cannot permute.
 - The paper's HIL predictor segments each of bands {5, 9, 10} (1-based) and fuses them
   in binary form (foreground vs background): ``band_fused_predictor``.
+- ``saturated`` (the cube's clipping mask, ``segmenters.masks``) is shifted with the cube and
+  given to each prediction as ``predict(x, saturated=mask)``: the clipping belongs to the pixel,
+  so it moves with it.
 
 **What a shift perturbs (issue 23).** A cyclic shift of an object that does not touch the
 border keeps the raster order of its pixels, so a segmenter that draws its fit sample by
@@ -101,8 +104,10 @@ class MTCResult:
         return {"mtc": self.score, "ious": list(self.ious), "shifts": [list(s) for s in self.shifts]}
 
 
-def _predict(predict: Predictor, x: np.ndarray, shape: tuple[int, int], what: str) -> np.ndarray:
-    y = as_label_map(predict(x), f"prediction ({what})")
+def _predict(predict: Callable[..., np.ndarray], x: np.ndarray, shape: tuple[int, int], what: str,
+             saturated: np.ndarray | None = None) -> np.ndarray:
+    out = predict(x) if saturated is None else predict(x, saturated=saturated)
+    y = as_label_map(out, f"prediction ({what})")
     if y.shape != shape:
         raise AnalysisInputError(f"prediction ({what})", f"shape {y.shape}, expected {shape}")
     return y
@@ -118,6 +123,7 @@ def mtc(
     shifts: Sequence[Shift] | None = None,
     ignore_label: int | None = None,
     align: bool = False,
+    saturated: np.ndarray | None = None,
 ) -> MTCResult:
     """mTC of ``predict`` on ``x``; pass ``shifts`` to override the seeded draw."""
     arr = np.asarray(x)
@@ -131,12 +137,18 @@ def mtc(
     if not used:
         raise AnalysisInputError("shifts", "need at least one shift")
     exclude = () if ignore_label is None else (ignore_label,)
+    mask = None
+    if saturated is not None:
+        mask = np.asarray(saturated, dtype=bool)
+        if mask.shape != shape:
+            raise AnalysisInputError("saturated", f"mask shape {mask.shape}, expected {shape}")
     perturbed = getattr(predict, "perturbed", None)  # ResampledFit: a new fit sample per perturbation
-    base = _predict(perturbed(0) if perturbed else predict, arr, shape, "base")
+    base = _predict(perturbed(0) if perturbed else predict, arr, shape, "base", mask)
     ious = []
     for k, (dx, dy) in enumerate(used, start=1):
         f = perturbed(k) if perturbed else predict
-        warped = _predict(f, translate(arr, dx, dy), shape, f"shift {dx},{dy}")
+        moved = None if mask is None else translate(mask, dx, dy)
+        warped = _predict(f, translate(arr, dx, dy), shape, f"shift {dx},{dy}", moved)
         back = untranslate(warped, dx, dy)
         if align:
             back = align_labels(base, back)
@@ -206,15 +218,15 @@ class ResampledFit:
         return int(min(int(self.segmenter.sample_size), cap))
 
     def perturbed(self, k: int) -> Predictor:
-        def predict(cube: np.ndarray) -> np.ndarray:
+        def predict(cube: np.ndarray, **kw: Any) -> np.ndarray:  # kw: ``saturated``, as ``mtc`` gives it
             seg = copy.copy(self.segmenter)
             seg.seed = int(self.segmenter.seed) + int(k)
             seg.sample_size = self.sample_size(cube)
-            return seg.segment(cube)
+            return seg.segment(cube, **kw)
 
         return predict
 
-    def __call__(self, cube: np.ndarray) -> np.ndarray:
-        return self.perturbed(0)(cube)
+    def __call__(self, cube: np.ndarray, **kw: Any) -> np.ndarray:
+        return self.perturbed(0)(cube, **kw)
 
     segment = __call__

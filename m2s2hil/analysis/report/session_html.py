@@ -33,14 +33,14 @@ import cv2
 import numpy as np
 
 from m2s2hil.analysis.evaluation.jobs import FrameJob, session_jobs
-from m2s2hil.analysis.evaluation.loading import load_cube
+from m2s2hil.analysis.evaluation.loading import load_cube, load_frame
 from m2s2hil.analysis.qc import FLAGS, QcConfig, capture_stability, qc_of_meta, qc_summary
 from m2s2hil.analysis.report.charts import qc_histogram_png
 from m2s2hil.analysis.report.coverage import coverage_section
 from m2s2hil.atomic import write_text_atomic
 from m2s2hil.catalog import load_catalog
 from m2s2hil.processing.display import false_colour
-from m2s2hil.store.frame_files import decode_image, decode_tiff
+from m2s2hil.store.frame_files import decode_image
 from m2s2hil.store.session import SessionStore
 
 # The operator console's palette (m2s2hil/console/console.css): light, or dark when the system
@@ -96,27 +96,12 @@ def thumbnail_jpeg(rgb: np.ndarray, width: int) -> bytes:
     return buf.tobytes() if ok else b""
 
 
-def _saturation_on_grid(raw: np.ndarray, full_scale: int, shape: tuple[int, int]) -> np.ndarray | None:
-    """The raw full-scale mask on the cube's grid (a cell is saturated if any of its pixels is)."""
-    sat = raw >= full_scale
-    if sat.shape == shape:
-        return sat
-    n = sat.shape[0] // shape[0] if shape[0] else 0
-    if n < 1 or sat.shape != (shape[0] * n, shape[1] * n):
-        return None
-    return np.asarray(sat.reshape(shape[0], n, shape[1], n).any(axis=(1, 3)))
-
-
 def _compute_qc(job: FrameJob, config: QcConfig) -> tuple[float | None, list[str], np.ndarray | None]:
-    cube = load_cube(job)
-    sat = None
+    # the cube with the clipping mask the processor gave at capture (rebuilt from the raw frame)
+    frame = load_frame(job)
     full_scale = (1 << int(job.camera.get("bit_depth", 10))) - 1
-    if job.raw is not None:
-        data = Path(job.raw.path).read_bytes()
-        raw = decode_image(data) if job.raw_kind == "png" else decode_tiff(data)[0]
-        sat = _saturation_on_grid(np.asarray(raw), full_scale, cube.shape[1:])
-    res = capture_stability(cube, sat, config=config, full_scale=full_scale)
-    return res.score, list(res.flags), cube
+    res = capture_stability(frame.cube, frame.saturated, config=config, full_scale=full_scale)
+    return res.score, list(res.flags), frame.cube
 
 
 def collect_views(

@@ -570,8 +570,8 @@ class SpectralSegmenter:
         seg.name = "spectral-catalog-k"
         return seg
 
-    def segment(self, cube: np.ndarray) -> np.ndarray:
-        return self.analyse(cube).labels
+    def segment(self, cube: np.ndarray, *, saturated: np.ndarray | None = None) -> np.ndarray:
+        return self.analyse(cube, saturated=saturated).labels
 
     def _fit(self, sample: np.ndarray, n: int) -> GaussianMixture:
         from sklearn.mixture import GaussianMixture

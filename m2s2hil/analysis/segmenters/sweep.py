@@ -101,7 +101,8 @@ class SweepSegmenter:
         """Pool an equal share of every cube's fit rows and select the sweep's mixture. ``exposures``
         (seconds × gain, one a cube): each cube is scaled to the first one's, so the brightness
         coordinate of a material is the same in every frame. ``saturated``: the processor's clipping
-        mask of each cube (or None), as ``analyse`` takes it.
+        mask of each cube (or None), as ``analyse`` takes it; read in step with ``cubes`` (the i-th
+        mask is taken just after the i-th cube), so both may be produced lazily.
 
         A frame gives only its clean fit pixels (``fit_sample(clean_only=True)``); only when the
         whole sweep has fewer than ``MIN_FIT_PIXELS`` of them are the frames' rows as each would be
@@ -171,8 +172,8 @@ class SweepSegmenter:
             arr = arr * np.float32(self.model.exposure_s / _exposure(exposure_s, 0))
         return self.frame.analyse(arr, saturated=saturated, mixture=self.model.mixture)
 
-    def segment(self, cube: np.ndarray) -> np.ndarray:
-        return self.analyse(cube).labels
+    def segment(self, cube: np.ndarray, *, saturated: np.ndarray | None = None) -> np.ndarray:
+        return self.analyse(cube, saturated=saturated).labels
 
     def analyse_sweep(self, cubes: list[object], exposures: list[float] | None = None,
                       saturated: list[np.ndarray | None] | None = None) -> list[SpectralSegmentation]:

@@ -44,12 +44,15 @@ def simulate_session(
     qc: Any = True,
     session_id: str | None = None,
     dark_frames: int = 2,
+    store_cubes: bool = False,
 ) -> Path:
     """Capture a session on the simulated rig with the real engine (truth labels stored with
     every frame); ``size`` is the sensor width = height; ``qc``: True (default hook), a
-    hook, or None. Returns the session folder."""
+    hook, or None; ``store_cubes``: cache each cube beside its raw frame (``storage.cubes``).
+    Returns the session folder."""
     data = default_rig().model_dump(mode="json")
     data["camera"]["model"].update(width=int(size), height=int(size))
+    data.setdefault("storage", {})["cubes"] = bool(store_cubes)
     cfg = parse_rig(data, f"simulated rig ({size}x{size})")
     sweep_data: dict[str, Any] = {
         "satellite": satellite,
