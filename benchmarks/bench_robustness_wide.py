@@ -46,8 +46,16 @@ OUT = ROOT / "docs" / "images"
 K_GOAL, DICE_GOAL = 0.9, -0.05
 
 
+def given(frame: Any, masks: str | None) -> Any:
+    """The clipping mask ``--masks`` gives the segmenter: the processor's (``pixels``), which bands
+    (``bands``), or none."""
+    if masks == "bands":
+        return frame.band_saturated
+    return frame.saturated if masks == "pixels" else None
+
+
 def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | None = None, seed: int = 0,
-             masks: bool = False) -> list[dict[str, Any]]:
+             masks: str | None = None) -> list[dict[str, Any]]:
     """The nine builds of one view under ``cell``'s condition, segmented by the default."""
     from threadpoolctl import threadpool_limits
 
@@ -61,7 +69,7 @@ def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | Non
     with threadpool_limits(1):
         for f in simulated_frames(builds=("B1", "B2", "B3"), elevations=("E1",), azimuths=(azimuth,), **kw):
             t0 = time.process_time()
-            a = SpectralSegmenter(**(options or {})).analyse(f.cube, saturated=f.saturated if masks else None)
+            a = SpectralSegmenter(**(options or {})).analyse(f.cube, saturated=given(f, masks))
             rows.append({"pose": f"{f.name.split('_')[0]}_{f.build}_{azimuth:g}", "azimuth": azimuth,
                          "k": a.n_materials, "true": visible_materials(f.gt),
                          "dice": float(score_clusters(f.gt, a.labels)[0].macro_dice),
@@ -70,7 +78,7 @@ def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | Non
 
 
 def run_cell_sweep(cell: str, azimuths: list[float], size: int, sample_size: int,
-                   options: dict[str, Any] | None = None, seed: int = 0, masks: bool = False
+                   options: dict[str, Any] | None = None, seed: int = 0, masks: str | None = None
                    ) -> list[dict[str, Any]]:
     """Every view of ``cell``, rendered as ``run_view`` renders them; one ``SweepSegmenter`` mixture
     per satellite and build over its views, then each frame labelled with it."""
@@ -93,7 +101,7 @@ def run_cell_sweep(cell: str, azimuths: list[float], size: int, sample_size: int
             seg = SweepSegmenter(sweep_sample_size=sample_size, **(options or {}))
             # each frame's exposure is set for its own peak (simframes): scaled to one for the sweep
             found = seg.analyse_sweep([f.cube for f in frames], [f.exposure_s for f in frames],
-                                      [f.saturated for f in frames] if masks else None)
+                                      [given(f, masks) for f in frames] if masks else None)
             per = (time.process_time() - t0) / len(frames)
             assert seg.model is not None
             for f, a in zip(frames, found, strict=True):
@@ -226,8 +234,9 @@ def main() -> None:
     ap.add_argument("--name", help="output file stem (default robustness_wide[_sweep])")
     ap.add_argument("--beside", type=Path, help="a results JSON drawn beside this run's bars")
     ap.add_argument("--seed", type=int, default=0, help="the simulator's noise seed")
-    ap.add_argument("--masks", action="store_true",
-                    help="give the segmenter the processor's clipping masks (evaluate has none to give)")
+    ap.add_argument("--masks", nargs="?", const="pixels", choices=("pixels", "bands"), default=None,
+                    help="give the segmenter the processor's clipping masks: a pixel's (the default), or "
+                         "which bands clipped in it (evaluate gives the latter)")
     ap.add_argument("--cells", type=lambda v: v.split(","), default=None,
                     help="comma-separated cells to run (default: the goal's nine)")
     args = ap.parse_args()

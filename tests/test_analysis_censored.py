@@ -9,8 +9,14 @@ import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.metrics.scores import score_clusters
-from m2s2hil.analysis.segmenters.censored import explained, merge_censored, observed_means, plateau_levels
-from m2s2hil.analysis.segmenters.normalise import PLATEAU_REL_TOL, clipped_bands
+from m2s2hil.analysis.segmenters.censored import (
+    explained,
+    lower_bounds,
+    merge_censored,
+    observed_means,
+    plateau_levels,
+)
+from m2s2hil.analysis.segmenters.normalise import PLATEAU_REL_TOL, clipped_bands, reliability
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter, foreground_mask, ranked
 from m2s2hil.analysis.study.synthetic import exposed_scene, synthetic_scene
 
@@ -76,7 +82,15 @@ def test_explained_needs_the_shape_and_the_clip_reached():
         [100.0, 200.0, 1000.0, 200.0],   # m at scale 100 puts band 2 at 400: it cannot have clipped
     ])
     seen = np.array([[True, True, False, True]] * 3)
-    assert explained(x, seen, m, levels, tau_deg=3.0).tolist() == [True, False, False]
+    bounds = lower_bounds(x, seen, levels)
+    assert explained(x, seen, m, bounds, tau_deg=3.0).tolist() == [True, False, False]
+    # band 2 bent low by a clipped mosaic position (the processor's per-band mask, not the plateau):
+    # its recorded 700 is the bound; m at scale 300 reaches 1200, at scale 100 only 400
+    bent = np.array([[300.0, 600.0, 700.0, 600.0], [100.0, 200.0, 700.0, 200.0]])
+    off_plateau = np.zeros((2, 4), bool)
+    bounds = lower_bounds(bent, seen[:2], levels, off_plateau)
+    assert bounds[:, 2].tolist() == [700.0, 700.0] and np.isinf(bounds[:, [0, 1, 3]]).all()
+    assert explained(bent, seen[:2], m, bounds, tau_deg=3.0).tolist() == [True, False]
     values = np.array([[[5.0, 9.0]], [[1.0, 2.0]]])
     on_plateau = np.array([[[False, True]], [[False, False]]])
     assert plateau_levels(values, on_plateau).tolist() == [9.0, np.inf]
@@ -138,3 +152,36 @@ def test_ranked_numbers_by_size_and_the_share_is_checked():
     assert ranked(labels).tolist() == [[0, 2, 2], [2, 1, 1], [1, 1, 3]]
     with pytest.raises(AnalysisInputError, match="censored_min_share"):
         SpectralSegmenter(censored_min_share=1.0)
+
+
+def test_a_band_bent_by_a_clipped_mosaic_position_is_censored_only_with_the_per_band_mask():
+    """One material brightening left to right until bands 3–5 clip. Where they clip, one of band 2's
+    mosaic positions clipped too: the cell's mean is bent low, not at a plateau. The cube and a
+    pixel mask take the bent shape for a material of its own; the per-band mask
+    (``processing.stability.band_saturation``, what the evaluation gives) makes band 2 a lower
+    bound there, and the material explains it."""
+    rng = np.random.default_rng(0)
+    spec = np.array([0.22, 0.33, 0.4, 0.44, 0.42, 0.36, 0.29, 0.23, 0.17, 0.1])
+    yy, xx = np.mgrid[:64, :64]
+    obj = (yy - 32) ** 2 + (xx - 32) ** 2 < 26**2
+    cube = np.zeros((10, 64, 64), np.float32)
+    cube[:, obj] = spec[:, None] * (1540.0 + 1980.0 * xx[obj] / 64)[None]
+    cube += rng.normal(0.0, 3.0, cube.shape).astype(np.float32)
+    full = 1023.0
+    clipped = np.zeros(cube.shape, bool)
+    for b in (2, 3, 4):
+        clipped[b] = obj & (cube[b] > full)
+        cube[b][clipped[b]] = full
+    bent = obj & clipped[3] & (xx > 40)
+    cube[1][bent] = 0.5 * (full + 0.6 * cube[1][bent])  # below the true value, above no plateau
+    clipped[1] |= bent
+    assert bent.sum() > 0.2 * obj.sum()
+    seg = SpectralSegmenter()
+    assert seg.analyse(cube).n_materials == 2
+    assert seg.analyse(cube, saturated=clipped.any(axis=0)).n_materials == 2
+    by_band = seg.analyse(cube, saturated=clipped)
+    assert by_band.n_materials == 1 and by_band.censored is None
+    rel = reliability(cube, obj, saturated=clipped)
+    assert rel.clipped[1][bent].all() and not rel.plateau[1][bent].any()  # clipped, yet off the plateau
+    with pytest.raises(AnalysisInputError, match="expected"):
+        reliability(cube, obj, saturated=clipped[:4])

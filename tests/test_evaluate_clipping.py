@@ -3,15 +3,19 @@ segmenters that take it, to label mTC (shifted with the cube) and to the sweep f
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_support import run_cli
 
 from m2s2hil.analysis.evaluation.evaluate import evaluate_job
 from m2s2hil.analysis.evaluation.jobs import FileRef, collect_jobs
-from m2s2hil.analysis.evaluation.loading import load_frame, load_truth
+from m2s2hil.analysis.evaluation.loading import load_dark, load_frame, load_truth
 from m2s2hil.analysis.evaluation.options import EvalOptions
 from m2s2hil.analysis.evaluation.sweeps import fit_sweep
 from m2s2hil.analysis.metrics.scores import score_clusters
@@ -19,6 +23,8 @@ from m2s2hil.analysis.segmenters.registry import register_segmenter
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
 from m2s2hil.analysis.segmenters.sweep import SweepSegmenter
 from m2s2hil.analysis.study.stability import simulate_session
+from m2s2hil.config import CameraModel
+from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.stability import saturation_from_raw
 from m2s2hil.store.frame_files import decode_tiff
 
@@ -61,15 +67,21 @@ def test_a_stored_cubes_mask_is_rebuilt_from_its_raw_frame_as_the_processor_gave
     for job in jobs:
         stored = load_frame(job)  # the stored cube; its mask from the raw frame
         processed = load_frame(job, reprocess=job.method)  # the raw through the processor again
+        raw = decode_tiff(open(job.raw.path, "rb").read())[0]  # noqa: SIM115
+        at_capture = FrameProcessor(job.method, CameraModel.model_validate(job.camera), dark=load_dark(job))
+        given = at_capture.process(raw).saturated_mask
         assert stored.mask_error is None and stored.saturated is not None
-        assert 0.05 < stored.saturated.mean() < 0.6  # clipped, not everywhere
+        assert stored.saturated.shape == stored.cube.shape  # which bands, per pixel
+        np.testing.assert_array_equal(stored.saturated.any(axis=0), given)  # the processor's, pixel by pixel
+        assert 0.05 < stored.clipped_fraction < 0.6  # clipped, not everywhere
+        per_band = stored.saturated.mean(axis=(1, 2))
+        assert per_band.min() < 0.5 * per_band.max()  # some bands clip far more often than others
         np.testing.assert_array_equal(stored.saturated, processed.saturated)
         np.testing.assert_array_equal(stored.cube, processed.cube)
-        # reprocessed at full resolution: the raw mask grown by that method's support
+        # reprocessed at full resolution: the raw mask spread by that method's support
         wb = load_frame(job, reprocess="wb")
-        raw = decode_tiff(open(job.raw.path, "rb").read())[0]  # noqa: SIM115
-        np.testing.assert_array_equal(wb.saturated, saturation_from_raw(raw, "wb", 4, 1023))
-        assert wb.saturated.shape == raw.shape and wb.saturated.mean() > stored.saturated.mean()
+        np.testing.assert_array_equal(wb.saturated.any(axis=0), saturation_from_raw(raw, "wb", 4, 1023))
+        assert wb.saturated.shape[1:] == raw.shape and wb.clipped_fraction > stored.clipped_fraction
         assert load_frame(job, masks=False).saturated is None
 
 
@@ -82,7 +94,7 @@ def test_segmenters_that_take_the_mask_get_it_and_score_as_given_it(jobs):
     truth = load_truth(job, frame.cube.shape[1:])
     options = EvalOptions(extra=("probe-masks", "plain-masks"), mtc_for="none")
     rec = evaluate_job(job, options)
-    assert rec["error"] is None and rec["clipped_fraction"] == pytest.approx(frame.saturated.mean())
+    assert rec["error"] is None and rec["clipped_fraction"] == pytest.approx(frame.clipped_fraction)
     np.testing.assert_array_equal(probe.masks[-1], frame.saturated)
     assert "errors" not in rec["results"]["plain-masks"]  # called with the cube alone
     # the default segmenter's scores are its own on the cube with that mask, and differ without it
@@ -128,3 +140,15 @@ def test_the_sweep_fit_takes_each_frames_mask(jobs):
     assert unmasked.rows != direct.rows  # the masks took clipped cells out of the pool
     plain = fit_sweep(("spectral-sweep", jobs), replace(options, clip_masks=False))
     assert plain.rows == unmasked.rows
+
+
+def test_cli_reports_the_clipped_share_and_can_leave_the_masks_out(jobs, tmp_path):
+    session = str(Path(jobs[0].raw.path).parents[1])
+    for flag, want in (((), True), (("--no-clip-masks",), False)):
+        out = tmp_path / f"ev{want}"
+        res = run_cli("evaluate", session, "--out", out, "--workers", "0", "--mtc", "none", *flag)
+        assert res.exit_code == 0, res.output
+        assert json.loads((out / "summary.json").read_text())["options"]["clip_masks"] is want
+        rows = list(csv.DictReader((out / "per_image.csv").open()))
+        shares = {r["clipped_fraction"] for r in rows}
+        assert (all(0.05 < float(s) < 0.6 for s in shares) if want else shares == {""}), shares

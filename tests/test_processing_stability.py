@@ -14,6 +14,7 @@ from m2s2hil.processing.groundtruth import mosaic_of, synthetic_scene
 from m2s2hil.processing.image_quality import sam_map
 from m2s2hil.processing.mosaic import MosaicLayout, cell_mean
 from m2s2hil.processing.stability import (
+    band_saturation,
     check_phase,
     full_resolution,
     grow_mask,
@@ -174,3 +175,23 @@ def test_aliasing_fine_gratings_create_false_colour(method):
     low, high = np.nanmean(sam[ring_lo]), np.nanmean(sam[ring_hi])
     assert high > 5 * low and high > 2.0
     assert np.isfinite(sam[ring_hi]).all()
+
+
+def test_which_bands_a_clipped_raw_pixel_spoils():
+    """``band_saturation``: super-pixel, nearest and WB build each band from its own samples, so a
+    clipped raw pixel spoils only its band (one cell, or the support around it); PPID's guide mixes
+    every band, so all of them."""
+    raw_mask = np.zeros((16, 16), bool)
+    raw_mask[5, 6] = True  # cell (1, 1), position (1, 2)
+    band = int(LAYOUT.array[1, 2])
+    sp = band_saturation(raw_mask, "superpixel", LAYOUT)
+    assert sp.shape == (LAYOUT.n_bands, 4, 4)
+    assert np.argwhere(sp).tolist() == [[band, 1, 1]]
+    for method in ("nearest", "wb"):
+        full = band_saturation(raw_mask, method, LAYOUT)
+        others = np.delete(full, band, axis=0)
+        assert not others.any()
+        np.testing.assert_array_equal(full[band], grow_mask(raw_mask, support_radius(method, LAYOUT.n)))
+    ppid = band_saturation(raw_mask, "ppid", LAYOUT)
+    assert all(np.array_equal(ppid[b], grow_mask(raw_mask, support_radius("ppid", LAYOUT.n)))
+               for b in range(LAYOUT.n_bands))

@@ -57,6 +57,10 @@ def evaluate_cmd(
         None, "--reprocess", help="demosaic the raws again with this method instead of the stored cubes"
     ),
     rho: float = typer.Option(0.9, "--rho", help="assumed within-image correlation of the paired t-test"),
+    clip_masks: bool = typer.Option(
+        True, "--clip-masks/--no-clip-masks",
+        help="give the segmenters which bands clipped in each pixel, from the raw frames (default on)",
+    ),
     limit: int | None = typer.Option(None, "--limit", min=1, help="evaluate only the first N images"),
     pair_with: str | None = typer.Option(
         None, "--pair-with", help="a synthetic TARGET: the HIL session to compare with pose by pose"
@@ -84,6 +88,7 @@ def evaluate_cmd(
         mtc_mode=mtc_mode,
         reprocess=reprocess,
         rho=rho,
+        clip_masks=clip_masks,
     )  # type: ignore[arg-type]
     from m2s2hil.analysis.evaluation.synthetic import synthetic_target
     from m2s2hil.commands.synth import evaluate_synthetic_session

@@ -162,6 +162,34 @@ def cube_saturation(raw_mask: np.ndarray, method: str, n: int, out: np.ndarray |
     return cell_mask(raw_mask, n, out=out)
 
 
+#: Methods that interpolate each band from that band's own samples only, so a clipped raw pixel
+#: spoils only its own band around it; the others (PPID's guide mixes every band) spoil them all.
+_PER_BAND = frozenset({"superpixel", "nearest", "wb"})
+
+
+def band_saturation(raw_mask: np.ndarray, method: str, layout: MosaicLayout) -> np.ndarray:
+    """(bands, H', W') bool: where each band of ``method``'s cube holds a clipped raw value. Its
+    ``any`` over bands is ``cube_saturation``. A segmenter needs the bands, not just the pixel: a cell
+    where one of a band's two positions clipped records a value bent low but not at the clipping
+    plateau, which the cube alone cannot tell from a material's shape (docs/evaluation.md)."""
+    mask = np.asarray(raw_mask, dtype=bool)
+    if method not in _PER_BAND:
+        one = cube_saturation(mask, method, layout.n)
+        return np.broadcast_to(one, (layout.n_bands, *one.shape)).copy()
+    n = layout.n
+    if not full_resolution(method):
+        h, w = mask.shape
+        cells = mask.reshape(h // n, n, w // n, n)
+        out = np.zeros((layout.n_bands, h // n, w // n), bool)
+        for b, spots in enumerate(layout.positions):
+            for r, c in spots:
+                out[b] |= cells[:, r, :, c]
+        return out
+    bands = layout.band_map(*mask.shape)
+    radius = support_radius(method, n)
+    return np.stack([grow_mask(mask & (bands == b), radius) for b in range(layout.n_bands)])
+
+
 def saturation_from_raw(raw: np.ndarray, method: str, n: int, full_scale: int) -> np.ndarray:
     """The clipping mask ``FrameProcessor.process`` gives with ``raw`` (raw pixels at full scale,
     before any dark subtraction), without demosaicing: for a stored cube, rebuilt from its raw frame."""

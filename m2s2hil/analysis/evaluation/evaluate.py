@@ -13,10 +13,11 @@ Per image (``evaluate_job``):
   through ``processing.FrameProcessor`` (the session's dark and method, or ``reprocess=``);
   exported datasets are processed from their PNG mosaic (``HIL16`` when present), without
   dark subtraction;
-- clipping mask (``EvalOptions.clip_masks``, on by default): the processor's, when the raw is
-  processed here; for a stored cube, rebuilt from its raw frame (``loading.stored_saturation``).
-  Segmenters that take it (``segmenters.masks``) get it, and label mTC shifts it with the cube;
-  ``clipped_fraction`` in the per-image rows is its share of the image;
+- clipping mask (``EvalOptions.clip_masks``, on by default): which bands of each pixel hold a
+  clipped raw value, from the raw frame (``loading.clipping_mask``; its ``any`` over bands is the
+  processor's mask, also for a stored cube, which does not keep it). Segmenters that take it
+  (``segmenters.masks``) get it, and label mTC shifts it with the cube; ``clipped_fraction`` in the
+  per-image rows is the share of the image with a band clipped;
 - ground truth: the simulator's label map the engine stored with the frame
   (``extra`` role ``truth_labels``, sensor resolution), reduced to the cube's grid by the
   majority label of each n×n cell (``labels_to_cube``); images without it get mTC only;
@@ -175,7 +176,7 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
         return rec
     if frame.mask_error:
         rec["mask_error"] = frame.mask_error
-    rec["clipped_fraction"] = None if saturated is None else float(saturated.mean())
+    rec["clipped_fraction"] = frame.clipped_fraction
     bands_nm = job.camera.get("bands_nm") or ()
     projected = None
     try:

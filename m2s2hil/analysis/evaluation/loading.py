@@ -23,7 +23,7 @@ from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.evaluation.jobs import EvaluationError, FileRef, FrameJob
 from m2s2hil.config import CameraModel
 from m2s2hil.processing.mosaic import MosaicLayout
-from m2s2hil.processing.stability import saturation_from_raw
+from m2s2hil.processing.stability import band_saturation
 from m2s2hil.store.cubes import master_dark_from
 from m2s2hil.store.frame_files import decode_image, decode_tiff
 from m2s2hil.store.zarr_export import read_ref
@@ -119,21 +119,33 @@ class LoadedFrame:
     """A job's cube with its clipping mask (None when the job has no raw frame to rebuild it from)."""
 
     cube: np.ndarray  # float32 (bands, H, W)
-    saturated: np.ndarray | None  # bool (H, W): a band clipped (``ProcessedFrame.saturated_mask``)
+    # bool (bands, H, W): where each band holds a clipped raw value; its ``any`` over bands is the
+    # processor's ``saturated_mask``
+    saturated: np.ndarray | None
     mask_error: str | None = None  # why a stored cube's mask could not be rebuilt (the cube still counts)
+
+    @property
+    def clipped_fraction(self) -> float | None:
+        """The share of the image with some band clipped."""
+        return None if self.saturated is None else float(self.saturated.any(axis=0).mean())
+
+
+def clipping_mask(raw: np.ndarray, method: str, layout: MosaicLayout, full_scale: int) -> np.ndarray:
+    """(bands, H', W') where each band of ``method``'s cube of ``raw`` holds a raw value at full scale
+    (``processing.stability.band_saturation``; before any dark, as the processor flags it)."""
+    return band_saturation(np.asarray(raw) >= full_scale, method, layout)
 
 
 def stored_saturation(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | None:
-    """The clipping mask of the job's stored cube, rebuilt from its raw frame as the processor built
-    it at capture (``processing.stability.saturation_from_raw``: raw pixels at full scale, grown by
-    the method's support); None without a raw frame. A stored cube does not keep its mask."""
+    """The per-band clipping mask of the job's stored cube, rebuilt from its raw frame as the
+    processor flagged it at capture (raw pixels at full scale, spread by the method's support);
+    None without a raw frame. A stored cube does not keep its mask."""
     if job.raw is None:
         return None
     camera = CameraModel.model_validate(job.camera)
-    mask = saturation_from_raw(_load_raw(job), job.method, MosaicLayout.from_camera(camera).n,
-                               camera.full_scale)
-    if mask.shape != tuple(shape):
-        raise EvaluationError(f"{job.image_id}: the raw frame's clipping mask is {mask.shape} with the "
+    mask = clipping_mask(_load_raw(job), job.method, MosaicLayout.from_camera(camera), camera.full_scale)
+    if mask.shape[1:] != tuple(shape):
+        raise EvaluationError(f"{job.image_id}: the raw frame's clipping mask is {mask.shape[1:]} with the "
                               f"{job.method!r} method, the stored cube {tuple(shape)}")
     return mask
 
@@ -158,8 +170,10 @@ def load_frame(job: FrameJob, reprocess: str | None = None, *, masks: bool = Tru
     raw = _load_raw(job)
     proc = _processor(job, reprocess or job.method, raw.shape if job.raw_kind == "png" else None)
     out = proc.process(raw)
-    return LoadedFrame(np.array(out.cube, dtype=np.float32, copy=True),
-                       np.array(out.saturated_mask, copy=True) if masks else None)
+    cube = np.array(out.cube, dtype=np.float32, copy=True)
+    if not masks:
+        return LoadedFrame(cube, None)
+    return LoadedFrame(cube, clipping_mask(raw, proc.method, proc.layout, proc.full_scale))
 
 
 def load_cube(job: FrameJob, reprocess: str | None = None) -> np.ndarray:

@@ -139,9 +139,10 @@ def mtc(
     exclude = () if ignore_label is None else (ignore_label,)
     mask = None
     if saturated is not None:
-        mask = np.asarray(saturated, dtype=bool)
-        if mask.shape != shape:
-            raise AnalysisInputError("saturated", f"mask shape {mask.shape}, expected {shape}")
+        mask = np.asarray(saturated, dtype=bool)  # (H, W), or per band (bands, H, W)
+        if mask.ndim not in (2, 3) or mask.shape[-2:] != shape:
+            problem = f"mask shape {mask.shape}, expected (…, {shape[0]}, {shape[1]})"
+            raise AnalysisInputError("saturated", problem)
     perturbed = getattr(predict, "perturbed", None)  # ResampledFit: a new fit sample per perturbation
     base = _predict(perturbed(0) if perturbed else predict, arr, shape, "base", mask)
     ious = []

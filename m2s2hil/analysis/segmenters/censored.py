@@ -12,9 +12,11 @@ spectrum m when both hold:
 
 - on O the shapes agree: the angle between x_O and m_O is at most ``tau_deg``;
 - on C the material reaches the clip: with the scale s = x_O·m_O / m_O·m_O that fits O, every
-  clipped band's prediction s·m_b is at least (1 − ``shortfall``) × the band's plateau. A
-  material whose shape would put a clipped band below the plateau cannot have produced the pixel
-  (this is the censored likelihood's hinge: a lower bound the prediction does not reach).
+  clipped band's prediction s·m_b is at least (1 − ``shortfall``) × the band's lower bound: its
+  plateau, or, where the processor's per-band mask says a band clipped below it (one of its mosaic
+  positions clipped, the cell's mean bent low), the recorded value itself. A material whose shape
+  would put a clipped band below its bound cannot have produced the pixel (this is the censored
+  likelihood's hinge: a lower bound the prediction does not reach).
 
 The unexplained pixels are grouped by a mixture of their own, on their spectra as recorded (a
 clipped value is the same lower bound for every bright pixel of a material, so a material's
@@ -40,10 +42,21 @@ def plateau_levels(cube: np.ndarray, clipped: np.ndarray) -> np.ndarray:
     return levels
 
 
-def explained(x: np.ndarray, observed: np.ndarray, means: np.ndarray, levels: np.ndarray, *,
+def lower_bounds(x: np.ndarray, observed: np.ndarray, levels: np.ndarray, plateau: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """(m, bands): each clipped band's lower bound, the band's plateau level where the pixel is on
+    the plateau (``plateau`` (m, bands); None: every clipped band is), else its recorded value; inf
+    where observed (no bound to reach)."""
+    on = ~observed if plateau is None else plateau & ~observed
+    bounds = np.where(on, levels[None, :], x)
+    return np.where(observed, np.inf, bounds)
+
+
+def explained(x: np.ndarray, observed: np.ndarray, means: np.ndarray, bounds: np.ndarray, *,
               tau_deg: float, shortfall: float = 0.15) -> np.ndarray:
     """(m,) bool: some row of ``means`` (n, bands) explains each pixel of ``x`` (m, bands) whose
-    unclipped bands are ``observed`` (m, bands) — see the module docstring."""
+    unclipped bands are ``observed`` (m, bands), its clipped ones bounded below by ``bounds``
+    (``lower_bounds``) — see the module docstring."""
     xo = x * observed
     num = xo @ means.T  # (m, n)
     mo2 = observed.astype(np.float64) @ (means**2).T
@@ -51,10 +64,10 @@ def explained(x: np.ndarray, observed: np.ndarray, means: np.ndarray, levels: np
     shape_ok = cos >= np.cos(np.radians(tau_deg))
     scale = num / np.maximum(mo2, 1e-12)
     reach = np.ones_like(scale)
-    for b in np.flatnonzero(np.isfinite(levels)):
-        c = ~observed[:, b]
+    for b in range(x.shape[1]):
+        c = ~observed[:, b] & np.isfinite(bounds[:, b]) & (bounds[:, b] > 0)
         if c.any():
-            reach[c] = np.minimum(reach[c], scale[c] * means[None, :, b] / levels[b])
+            reach[c] = np.minimum(reach[c], scale[c] * means[None, :, b] / bounds[c, b][:, None])
     return (shape_ok & (reach >= 1.0 - shortfall)).any(axis=1)
 
 

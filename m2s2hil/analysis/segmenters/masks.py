@@ -1,11 +1,12 @@
 """Giving a segmenter the processor's clipping mask, when it takes one.
 
-A segmenter may offer ``segment(cube, *, saturated=None)``: ``saturated`` is the bool ``(H, W)``
-mask of pixels where a band clipped (``ProcessedFrame.saturated_mask``; for a stored cube,
-``evaluation.loading.stored_saturation`` rebuilds it from the raw frame). The cube alone cannot
-say where a band clipped in only one of a duplicated band's mosaic positions: the averaged value is
-low but not at the clipping plateau (docs/evaluation.md, tenth pass). The mask is optional: a
-segmenter without the keyword (SAM, one registered by a lab) is called with the cube alone.
+A segmenter may offer ``segment(cube, *, saturated=None)``: ``saturated`` is a bool mask of where
+a band clipped, ``(H, W)`` (a pixel with any band clipped: ``ProcessedFrame.saturated_mask``) or
+``(bands, H, W)`` (which bands: ``processing.stability.band_saturation``, what the evaluation gives,
+``evaluation.loading.clipping_mask``). The cube alone cannot say where a band clipped in only one of
+a duplicated band's mosaic positions: the averaged value is low but not at the clipping plateau
+(docs/evaluation.md, tenth and eleventh passes). The mask is optional: a segmenter without the
+keyword (SAM, one registered by a lab) is called with the cube alone.
 """
 
 from __future__ import annotations
@@ -23,6 +24,15 @@ def takes_saturated(segment: Any) -> bool:
     except (TypeError, ValueError):  # a builtin or C callable: assume the plain protocol
         return False
     return "saturated" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
+
+
+def pixel_mask(saturated: np.ndarray | None) -> np.ndarray | None:
+    """A per-band mask reduced to its pixels (any band clipped); an (H, W) mask or None as given.
+    For inputs that mix the bands, such as an RGB rendering."""
+    if saturated is None:
+        return None
+    mask = np.asarray(saturated, dtype=bool)
+    return np.asarray(mask.any(axis=0)) if mask.ndim == 3 else mask
 
 
 def segment_masked(segmenter: Any, cube: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:

@@ -11,7 +11,10 @@ carry a shape (issue 23, docs/evaluation.md "Robustness"):
   part of the spike (dark subtraction leaves each clipped value at full scale − its pixel's dark,
   a few DN apart), holding more pixels than the three times wider bin below (a natural tail
   falls towards its maximum). A processor's own mask (``saturated``,
-  ``ProcessedFrame.saturated_mask``) can be given instead or as well.
+  ``ProcessedFrame.saturated_mask``) can be given as well: (H, W), a pixel with some band clipped,
+  or (bands, H, W), which bands (``processing.stability.band_saturation``). Only the per-band mask
+  says where one of a band's mosaic positions clipped: the averaged value is bent low, not at the
+  plateau.
 - **near-black** pixels: band energy under ``snr_min`` × the noise floor. Their unit spectrum is
   mostly noise (its angular noise is about 1/SNR rad, 6° at SNR 10), and at low exposure they
   formed clusters of their own (under-exposure split a one-material build into 5–10).
@@ -57,11 +60,12 @@ class Reliability:
     """What ``reliability`` found; masks are (H, W) unless stated."""
 
     bands: np.ndarray  # int indices of the bands the features use (clipped-out bands left out)
-    clipped: np.ndarray  # bool (bands, H, W): the band is at its clipping plateau
+    clipped: np.ndarray  # bool (bands, H, W): the band clipped (at its plateau, or a given per-band mask)
     saturated: np.ndarray  # a used band clipped (or the given mask)
     dark: np.ndarray  # near-black: energy (used bands) < snr_min × noise floor
     noise: np.ndarray  # (bands,) noise floor σ per band, cube units
     snr: np.ndarray  # energy / noise floor energy (used bands)
+    plateau: np.ndarray | None = None  # bool (bands, H, W): at the plateau the cube shows (None: clipped)
 
     @property
     def unreliable(self) -> np.ndarray:
@@ -162,8 +166,10 @@ def backdrop_noise(cube: np.ndarray, fg: np.ndarray) -> np.ndarray:
 def reliability(
     cube: np.ndarray, fg: np.ndarray, *, snr_min: float = 10.0, saturated: np.ndarray | None = None
 ) -> Reliability:
-    """Clipped bands, saturated and near-black pixels of ``cube`` (bands, H, W) with foreground ``fg``."""
+    """Clipped bands, saturated and near-black pixels of ``cube`` (bands, H, W) with foreground ``fg``;
+    ``saturated``: the processor's clipping mask, (H, W) or per band (bands, H, W)."""
     n_bands = cube.shape[0]
+    given, per_band = _given_mask(saturated, n_bands, fg.shape)
     clipped = clipped_bands(cube, fg)
     n_fg = max(int(fg.sum()), 1)
     frac = clipped[:, fg].sum(axis=1) / n_fg
@@ -178,17 +184,31 @@ def reliability(
             break
         keep[b] = False
     bands = np.flatnonzero(keep)
+    plateau = clipped
+    if per_band is not None:  # which bands clipped: the plateau's and the bent ones alike
+        clipped = clipped | per_band
     sat = clipped[bands].any(axis=0)
-    if saturated is not None:
-        given = np.asarray(saturated, dtype=bool)
-        if given.shape != fg.shape:
-            raise AnalysisInputError("saturated", f"mask shape {given.shape}, expected {fg.shape}")
+    if given is not None and per_band is None:
         # a processor's mask flags any clipped band; those left out of the features do not count
         sat = sat | (given & ~clipped[~keep].any(axis=0)) if (~keep).any() else sat | given
     noise = backdrop_noise(cube, fg)
     energy = np.sqrt(np.einsum("bhw,bhw->hw", cube[bands], cube[bands]))
     snr = energy / noise_energy(noise, bands)
-    return Reliability(bands, clipped, sat & fg, (snr < snr_min) & fg, noise, snr)
+    return Reliability(bands, clipped, sat & fg, (snr < snr_min) & fg, noise, snr, plateau)
+
+
+def _given_mask(saturated: np.ndarray | None, n_bands: int, shape: tuple[int, ...]
+                ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(pixel mask, per-band mask or None) of a given clipping mask, its shape checked."""
+    if saturated is None:
+        return None, None
+    given = np.asarray(saturated, dtype=bool)
+    if given.shape == tuple(shape):
+        return given, None
+    if given.shape == (n_bands, *shape):
+        return np.asarray(given.any(axis=0)), given
+    raise AnalysisInputError("saturated", f"mask shape {given.shape}, expected {tuple(shape)} or "
+                             f"{(n_bands, *shape)}")
 
 
 def pool_size(noise_deg: float, target_deg: float) -> int:

@@ -57,7 +57,7 @@ import numpy as np
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.cie1931 import XYZ_TO_LINEAR_SRGB, cmf_table
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.segmenters.masks import segment_masked
+from m2s2hil.analysis.segmenters.masks import pixel_mask, segment_masked
 from m2s2hil.config import CameraModel
 
 if TYPE_CHECKING:  # the registry builds RgbBaseline, so it cannot be imported from here at run time
@@ -218,7 +218,7 @@ class RgbBaseline:
         """The inner segmenter on the rendering; ``saturated`` (the cube's clipping mask) goes with
         it when the inner one takes it: an RGB value mixes every band, so it is spoiled wherever
         one is."""
-        return segment_masked(self.segmenter, self.render(cube), saturated)
+        return segment_masked(self.segmenter, self.render(cube), pixel_mask(saturated))
 
     def fit(self, cubes: Iterable[object], *, saturated: Iterable[np.ndarray | None] | None = None) -> Any:
         """A sweep segmenter inside (``segmenters.sweep``): fitted on the sweep's RGB renderings
@@ -227,7 +227,9 @@ class RgbBaseline:
         if not callable(fit):
             raise AnalysisInputError("segmenter", f"{self.segmenter!r} is not fitted on a sweep")
         rendered = (self.render(as_cube(c)) for c in cubes)
-        return fit(rendered) if saturated is None else fit(rendered, saturated=saturated)
+        if saturated is None:
+            return fit(rendered)
+        return fit(rendered, saturated=(pixel_mask(m) for m in saturated))
 
     def use(self, model: Any) -> None:
         """A sweep segmenter inside: label with the ``model`` its ``fit`` returned."""

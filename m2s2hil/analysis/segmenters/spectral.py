@@ -143,7 +143,7 @@ from threadpoolctl import threadpool_limits
 
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.segmenters.censored import explained, merge_censored, plateau_levels
+from m2s2hil.analysis.segmenters.censored import explained, lower_bounds, merge_censored, plateau_levels
 from m2s2hil.analysis.segmenters.foreground import ForegroundRule, dim_regions, foreground_mask
 from m2s2hil.analysis.segmenters.normalise import (
     Reliability,
@@ -756,7 +756,10 @@ class SpectralSegmenter:
         the foreground (``feats``: ``arr``'s clustering features, already computed); returns the
         labels (renumbered by size) and those pixels, or the labels unchanged and None."""
         clipped = rel.clipped[rel.bands]
-        sat = rel.saturated & fg
+        # only pixels with a band at its plateau are censored data; a pixel only the processor's mask
+        # flags (one of a band's mosaic positions clipped: the averaged value is bent, not at the
+        # plateau) has no lower bound to test, and its bent shape is no material's (tenth pass)
+        sat = rel.saturated & fg & clipped.any(axis=0)
         good = fg & ~rel.unreliable
         n = int(labels.max())
         # a count given for the build bounds the whole map: the censored fit gets what is left
@@ -770,8 +773,11 @@ class SpectralSegmenter:
         if np.isfinite(noise_deg):
             tau = min(max(tau, CENSORED_NOISE_FACTOR * noise_deg), 45.0)
         x, observed = arr[:, sat].T, ~clipped[:, sat].T
+        on = None if rel.plateau is None else rel.plateau[rel.bands]
+        bounds = lower_bounds(x, observed, plateau_levels(arr, clipped if on is None else on),
+                              None if on is None else on[:, sat].T)
         un = np.zeros_like(fg)
-        un[sat] = ~explained(x, observed, means, plateau_levels(arr, clipped), tau_deg=tau)
+        un[sat] = ~explained(x, observed, means, bounds, tau_deg=tau)
         core = un & ndimage.binary_erosion(un)
         if int(core.sum()) < max(MIN_FIT_PIXELS, self.censored_min_share * int(fg.sum())):
             return labels, None

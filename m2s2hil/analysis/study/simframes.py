@@ -12,7 +12,8 @@ Conditions for the robustness benchmark (``benchmarks/bench_robustness.py``): ``
 (0.02–2: above 1 the brightest band clips), ``spot_angle_deg`` (the spotlight's incidence),
 ``temperature_c`` (dark current), ``read_noise_e`` (sensor noise) and ``fill`` (the mockup's
 bounding radius as a fraction of the frame side); None keeps the rig's value. Each frame also
-carries the processor's ``saturated`` mask (True where a band clipped).
+carries the processor's ``saturated`` mask (True where a band clipped) and ``band_saturated``,
+which bands.
 
 ``visible_materials(gt)``: materials covering at least ``VISIBLE_FRACTION`` of the object and
 ``VISIBLE_PIXELS`` pixels of the cube — a material hidden behind the body, or a few pixels at the
@@ -32,6 +33,8 @@ from m2s2hil.catalog import load_catalog
 from m2s2hil.config import load_rig
 from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark
+from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.processing.stability import band_saturation
 from m2s2hil.sim_config import build_frame_source, build_world
 from m2s2hil.simulators.clock import VirtualClock
 
@@ -55,6 +58,7 @@ class SimFrame:
     materials: tuple[str, ...]
     exposure_s: float
     saturated: np.ndarray | None = None  # bool (h, w): a band clipped (processing's saturated_mask)
+    band_saturated: np.ndarray | None = None  # bool (bands, h, w): which bands (stability.band_saturation)
 
     @property
     def name(self) -> str:
@@ -108,6 +112,7 @@ def simulated_frames(
     src = build_frame_source(cfg, world, seed=seed, model=model)
     if fill is not None:
         src.scene.params = replace(src.scene.params, fill=float(fill))
+    layout = MosaicLayout.from_camera(model)
     full = float(model.full_scale)
     skipped = set(skip)
     for light in lightings:
@@ -142,6 +147,7 @@ def simulated_frames(
                         done = FrameProcessor("superpixel", model, dark=dark).process(raw)
                         cube = np.array(done.cube, dtype=np.float32, copy=True)
                         sat_mask = np.array(done.saturated_mask, dtype=bool, copy=True)
+                        by_band = band_saturation(raw >= model.full_scale, "superpixel", layout)
                         gt = labels_to_cube(labels, cube.shape[1:])
                         yield SimFrame(sat, build, light, elev, float(az), cube, gt, materials, exposure,
-                                       sat_mask)
+                                       sat_mask, by_band)
