@@ -105,6 +105,8 @@ def test_segmenters_that_take_the_mask_get_it_and_score_as_given_it(jobs):
     alone = SpectralSegmenter().segment(frame.cube)
     assert off["results"]["spectral"]["dice"] == pytest.approx(score_clusters(truth, alone)[0].macro_dice)
     assert not np.array_equal(with_mask, alone)  # the mask is not a no-op on this frame
+    # the RGB baseline takes no mask: its scores are the same with and without
+    assert rec["results"]["rgb"]["dice"] == pytest.approx(off["results"]["rgb"]["dice"])
 
 
 def test_label_mtc_gets_the_mask_shifted_with_the_cube(jobs):
@@ -140,6 +142,8 @@ def test_the_sweep_fit_takes_each_frames_mask(jobs):
     assert unmasked.rows != direct.rows  # the masks took clipped cells out of the pool
     plain = fit_sweep(("spectral-sweep", jobs), replace(options, clip_masks=False))
     assert plain.rows == unmasked.rows
+    rgb = fit_sweep(("rgb-sweep", jobs), options)  # the RGB sweep takes no mask, and still fits
+    assert not isinstance(rgb, str), rgb
 
 
 def test_cli_reports_the_clipped_share_and_can_leave_the_masks_out(jobs, tmp_path):

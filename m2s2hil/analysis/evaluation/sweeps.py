@@ -30,6 +30,7 @@ from m2s2hil.analysis.evaluation.jobs import FrameJob
 from m2s2hil.analysis.evaluation.loading import load_frame
 from m2s2hil.analysis.evaluation.options import EvalOptions, is_sweep, make_segmenter
 from m2s2hil.analysis.evaluation.parallel import map_ordered
+from m2s2hil.analysis.segmenters.masks import takes_saturated
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +64,10 @@ def fit_sweep(group: tuple[str, list[FrameJob]], options: EvalOptions) -> Any:
                 masks.put(frame.saturated)
                 yield sweep_cube(frame.cube, job)
 
-        if not options.clip_masks:
-            return seg.fit(cubes())  # type: ignore[attr-defined]
-        return seg.fit(cubes(), saturated=masks)  # type: ignore[attr-defined]
+        fit = seg.fit  # type: ignore[attr-defined]
+        if not options.clip_masks or not takes_saturated(fit):  # the RGB sweep takes none
+            return fit(cubes())
+        return fit(cubes(), saturated=masks)
     except Exception as exc:  # the sweep's images report it as this segmenter's error
         return f"{type(exc).__name__}: the sweep's mixture could not be fitted: {exc}"
 

@@ -6,7 +6,9 @@ a band clipped, ``(H, W)`` (a pixel with any band clipped: ``ProcessedFrame.satu
 ``evaluation.loading.clipping_mask``). The cube alone cannot say where a band clipped in only one of
 a duplicated band's mosaic positions: the averaged value is low but not at the clipping plateau
 (docs/evaluation.md, tenth and eleventh passes). The mask is optional: a segmenter without the
-keyword (SAM, one registered by a lab) is called with the cube alone.
+keyword is called with the cube alone. SAM and the RGB baselines take none (an RGB value mixes the
+bands with weights of both signs, so a clipped band bounds it neither way: ``segmenters.rgb``), nor
+need a lab's own segmenter.
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ A segmenter is any object with a ``name`` and ``segment(cube) -> labels``:
   ``m2s2hil.analysis.matching.match_clusters`` before scoring.
 
 A segmenter may also take the processor's clipping mask, ``segment(cube, *, saturated=mask)``
-(``segmenters.masks``): the spectral, sweep and RGB ones do; SAM does not, and is called
-without it.
+(``segmenters.masks``): the spectral and sweep ones do; SAM and the RGB baselines do not, and
+are called without it.
 
 Built-in names (``create_segmenter(name, **options)``):
 

@@ -57,7 +57,6 @@ import numpy as np
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.cie1931 import XYZ_TO_LINEAR_SRGB, cmf_table
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.segmenters.masks import pixel_mask, segment_masked
 from m2s2hil.config import CameraModel
 
 if TYPE_CHECKING:  # the registry builds RgbBaseline, so it cannot be imported from here at run time
@@ -214,22 +213,21 @@ class RgbBaseline:
             return camera_rgb(cube, self.bands_nm, self.ir_cut_nm)
         return render_rgb(cube, self.bands_nm, self.gamma, self.nir)
 
-    def segment(self, cube: np.ndarray, *, saturated: np.ndarray | None = None) -> np.ndarray:
-        """The inner segmenter on the rendering; ``saturated`` (the cube's clipping mask) goes with
-        it when the inner one takes it: an RGB value mixes every band, so it is spoiled wherever
-        one is."""
-        return segment_masked(self.segmenter, self.render(cube), pixel_mask(saturated))
+    def segment(self, cube: np.ndarray) -> np.ndarray:
+        """The inner segmenter on the rendering. It takes no clipping mask (``segmenters.masks``):
+        an RGB value mixes the bands with weights of both signs, so a clipped band bounds it
+        neither above nor below, and a per-pixel flag with no bound to test only takes pixels out
+        of the fit (the saturation study's RGB Dice fell from 0.60 to 0.34 with it,
+        docs/evaluation.md, eleventh pass). An RGB camera knows only its own channels' clipping,
+        which the inner segmenter's plateau test finds on the rendering."""
+        return self.segmenter.segment(self.render(cube))
 
-    def fit(self, cubes: Iterable[object], *, saturated: Iterable[np.ndarray | None] | None = None) -> Any:
-        """A sweep segmenter inside (``segmenters.sweep``): fitted on the sweep's RGB renderings
-        (with the cubes' clipping masks, when given)."""
+    def fit(self, cubes: Iterable[object]) -> Any:
+        """A sweep segmenter inside (``segmenters.sweep``): fitted on the sweep's RGB renderings."""
         fit = getattr(self.segmenter, "fit", None)
         if not callable(fit):
             raise AnalysisInputError("segmenter", f"{self.segmenter!r} is not fitted on a sweep")
-        rendered = (self.render(as_cube(c)) for c in cubes)
-        if saturated is None:
-            return fit(rendered)
-        return fit(rendered, saturated=(pixel_mask(m) for m in saturated))
+        return fit(self.render(as_cube(c)) for c in cubes)
 
     def use(self, model: Any) -> None:
         """A sweep segmenter inside: label with the ``model`` its ``fit`` returned."""
