@@ -25,7 +25,7 @@ from m2s2hil.analysis.segmenters.sweep import SweepSegmenter
 from m2s2hil.analysis.study.stability import simulate_session
 from m2s2hil.config import CameraModel
 from m2s2hil.processing.chain import FrameProcessor
-from m2s2hil.processing.stability import saturation_from_raw
+from m2s2hil.processing.stability import cube_saturation
 from m2s2hil.store.frame_files import decode_tiff
 
 
@@ -80,7 +80,7 @@ def test_a_stored_cubes_mask_is_rebuilt_from_its_raw_frame_as_the_processor_gave
         np.testing.assert_array_equal(stored.cube, processed.cube)
         # reprocessed at full resolution: the raw mask spread by that method's support
         wb = load_frame(job, reprocess="wb")
-        np.testing.assert_array_equal(wb.saturated.any(axis=0), saturation_from_raw(raw, "wb", 4, 1023))
+        np.testing.assert_array_equal(wb.saturated_pixels, cube_saturation(raw >= 1023, "wb", 4))
         assert wb.saturated.shape[1:] == raw.shape and wb.clipped_fraction > stored.clipped_fraction
         assert load_frame(job, masks=False).saturated is None
 

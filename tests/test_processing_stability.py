@@ -16,9 +16,7 @@ from m2s2hil.processing.mosaic import MosaicLayout, cell_mean
 from m2s2hil.processing.stability import (
     band_saturation,
     check_phase,
-    full_resolution,
     grow_mask,
-    saturation_from_raw,
     support_radius,
 )
 
@@ -58,22 +56,19 @@ def test_saturation_is_flagged_and_contained(method):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_the_clipping_mask_rebuilt_from_the_raw_is_the_processors(method):
-    """A stored cube does not keep its mask: ``saturation_from_raw`` rebuilds it from the raw frame
-    without demosaicing, and must give exactly what the processor gave (with a dark too: the flag
-    is the raw value at full scale, before the dark is subtracted)."""
+    """A stored cube does not keep its mask: ``band_saturation`` rebuilds it from the raw frame
+    without demosaicing, and its ``any`` over bands must be exactly what the processor gave (with a
+    dark too: the flag is the raw value at full scale, before the dark is subtracted)."""
     raw = np.minimum(mosaic_of(SCENE.cube * 2.0, LAYOUT, CAM16.full_scale), CAM.full_scale)
     dark = build_master_dark(np.stack([np.full(raw.shape, 40, np.uint16)] * 2), exposure_s=0.01, gain=1.0,
                               temperature_c=25.0)
     for proc in (FrameProcessor(method, CAM), FrameProcessor(method, CAM, dark=dark)):
         given = proc.process(raw).saturated_mask
-        rebuilt = saturation_from_raw(raw, method, LAYOUT.n, CAM.full_scale)
+        rebuilt = band_saturation(raw >= CAM.full_scale, method, LAYOUT).any(axis=0)
         assert given.any() and not given.all()
         np.testing.assert_array_equal(rebuilt, given)
-    d = get_demosaicer(method, LAYOUT, raw.shape)  # one table gives the demosaicer its reach too
-    assert d.full_resolution == full_resolution(method)
-    assert d.support_radius == support_radius(method, LAYOUT.n)
     with pytest.raises(UnknownMethodError, match="unknown demosaicing method 'bilinear'"):
-        saturation_from_raw(raw, "bilinear", LAYOUT.n, CAM.full_scale)
+        band_saturation(raw >= CAM.full_scale, "bilinear", LAYOUT)
 
 
 def test_ppid_with_fixed_gains_contains_saturation_exactly():

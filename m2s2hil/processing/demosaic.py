@@ -16,7 +16,7 @@ from numba import get_num_threads, parallel_chunksize
 from m2s2hil.config import DEMOSAIC_METHODS, check_demosaic_method
 from m2s2hil.processing.errors import FrameShapeError, LayoutError, UnknownMethodError
 from m2s2hil.processing.mosaic import MosaicLayout
-from m2s2hil.processing.stability import support_radius
+from m2s2hil.processing.stability import full_resolution, support_radius
 from m2s2hil.processing.streaming import aligned_empty
 
 #: The method names, known below processing (the rig file checks them without importing numba);
@@ -30,8 +30,6 @@ class Demosaicer(ABC):
     """Turns an (H, W) mosaic (uint16, or float32 for averaged references) into a float32 cube."""
 
     name: ClassVar[str]
-    #: True when the cube has the sensor's resolution, False for one value per n×n cell.
-    full_resolution: ClassVar[bool] = True
 
     def __init__(self, layout: MosaicLayout, shape: tuple[int, int]) -> None:
         if layout.n < 2:
@@ -50,6 +48,12 @@ class Demosaicer(ABC):
             return (self.layout.n_bands, h, w)
         n = self.layout.n
         return (self.layout.n_bands, h // n, w // n)
+
+    @property
+    def full_resolution(self) -> bool:
+        """True when the cube has the sensor's resolution, False for one value per n×n cell
+        (``stability.full_resolution``)."""
+        return full_resolution(self.name)
 
     @property
     def support_radius(self) -> int:

@@ -17,6 +17,7 @@ High-frequency aliasing cannot be told from true texture in one frame: it is onl
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -125,33 +126,41 @@ def phase_warning(check: PhaseCheck) -> str | None:
     )
 
 
-#: How far one raw value reaches in each method's cube, in raw pixels, for an n×n mosaic
-#: (``support_radius``); ``superpixel`` gives one value per cell, so a clipped raw pixel spoils
-#: exactly its own cell. The demosaicers read their radius here, so the evaluation can rebuild a
+class Reach(NamedTuple):
+    """How one raw value of an n×n mosaic reaches into a method's cube."""
+
+    full_resolution: bool  # the cube has the sensor's resolution (else one value per n×n cell)
+    a: int  # support radius in raw pixels: a·n + b (never below 0)
+    b: int
+    per_band: bool  # each band is built from its own samples only, so a raw value spoils only its band
+
+
+#: Every method's reach: one table that the demosaicers read too, so the evaluation can rebuild a
 #: stored cube's clipping mask from its raw frame without building one (or importing numba).
-_REACH: dict[str, tuple[bool, int, int]] = {  # method: (full resolution, a, b): radius = a·n + b
-    "superpixel": (False, 0, 0),
-    "nearest": (True, 1, -1),
-    "wb": (True, 1, -1),
+_REACH: dict[str, Reach] = {
+    "superpixel": Reach(False, 0, 0, True),  # a clipped raw pixel spoils exactly its own cell
+    "nearest": Reach(True, 1, -1, True),
+    "wb": Reach(True, 1, -1, True),
     # R − PPI at a sample s reads R within n + 1 of s and PPI0 at s ± n, itself R within n − 1 of
-    # those (2n − 1 in all); WB of the differences reaches samples n − 1 away: 3n − 2.
-    "ppid": (True, 3, -2),
+    # those (2n − 1 in all); WB of the differences reaches samples n − 1 away: 3n − 2. Its guide
+    # (PPI) mixes every band, so a clipped raw value spoils them all.
+    "ppid": Reach(True, 3, -2, False),
 }
 
 
-def _reach(method: str) -> tuple[bool, int, int]:
+def _reach(method: str) -> Reach:
     return _REACH[check_demosaic_method(method, UnknownMethodError)]
 
 
 def support_radius(method: str, n: int) -> int:
     """How far (raw pixels) one raw value of an n×n mosaic reaches in ``method``'s cube."""
-    _, a, b = _reach(method)
-    return max(0, a * n + b)
+    r = _reach(method)
+    return max(0, r.a * n + r.b)
 
 
 def full_resolution(method: str) -> bool:
     """True when ``method``'s cube has the sensor's resolution, False for one value per cell."""
-    return _reach(method)[0]
+    return _reach(method).full_resolution
 
 
 def cube_saturation(raw_mask: np.ndarray, method: str, n: int, out: np.ndarray | None = None) -> np.ndarray:
@@ -162,22 +171,18 @@ def cube_saturation(raw_mask: np.ndarray, method: str, n: int, out: np.ndarray |
     return cell_mask(raw_mask, n, out=out)
 
 
-#: Methods that interpolate each band from that band's own samples only, so a clipped raw pixel
-#: spoils only its own band around it; the others (PPID's guide mixes every band) spoil them all.
-_PER_BAND = frozenset({"superpixel", "nearest", "wb"})
-
-
 def band_saturation(raw_mask: np.ndarray, method: str, layout: MosaicLayout) -> np.ndarray:
     """(bands, H', W') bool: where each band of ``method``'s cube holds a clipped raw value. Its
     ``any`` over bands is ``cube_saturation``. A segmenter needs the bands, not just the pixel: a cell
     where one of a band's two positions clipped records a value bent low but not at the clipping
     plateau, which the cube alone cannot tell from a material's shape (docs/evaluation.md)."""
     mask = np.asarray(raw_mask, dtype=bool)
-    if method not in _PER_BAND:
+    reach = _reach(method)
+    if not reach.per_band:
         one = cube_saturation(mask, method, layout.n)
         return np.broadcast_to(one, (layout.n_bands, *one.shape)).copy()
     n = layout.n
-    if not full_resolution(method):
+    if not reach.full_resolution:
         h, w = mask.shape
         cells = mask.reshape(h // n, n, w // n, n)
         out = np.zeros((layout.n_bands, h // n, w // n), bool)
@@ -188,12 +193,6 @@ def band_saturation(raw_mask: np.ndarray, method: str, layout: MosaicLayout) -> 
     bands = layout.band_map(*mask.shape)
     radius = support_radius(method, n)
     return np.stack([grow_mask(mask & (bands == b), radius) for b in range(layout.n_bands)])
-
-
-def saturation_from_raw(raw: np.ndarray, method: str, n: int, full_scale: int) -> np.ndarray:
-    """The clipping mask ``FrameProcessor.process`` gives with ``raw`` (raw pixels at full scale,
-    before any dark subtraction), without demosaicing: for a stored cube, rebuilt from its raw frame."""
-    return cube_saturation(np.asarray(raw) >= full_scale, method, n)
 
 
 def grow_mask(raw_mask: np.ndarray, radius: int, out: np.ndarray | None = None) -> np.ndarray:

@@ -32,7 +32,6 @@ def position_tables(layout: MosaicLayout) -> tuple[np.ndarray, np.ndarray, np.nd
 
 class SuperPixelDemosaicer(Demosaicer):
     name = "superpixel"
-    full_resolution = False
 
     def __init__(self, layout: MosaicLayout, shape: tuple[int, int]) -> None:
         super().__init__(layout, shape)

@@ -125,9 +125,15 @@ class LoadedFrame:
     mask_error: str | None = None  # why a stored cube's mask could not be rebuilt (the cube still counts)
 
     @property
+    def saturated_pixels(self) -> np.ndarray | None:
+        """bool (H, W): some band clipped, the processor's ``saturated_mask``."""
+        return None if self.saturated is None else np.asarray(self.saturated.any(axis=0))
+
+    @property
     def clipped_fraction(self) -> float | None:
         """The share of the image with some band clipped."""
-        return None if self.saturated is None else float(self.saturated.any(axis=0).mean())
+        pixels = self.saturated_pixels
+        return None if pixels is None else float(pixels.mean())
 
 
 def clipping_mask(raw: np.ndarray, method: str, layout: MosaicLayout, full_scale: int) -> np.ndarray:

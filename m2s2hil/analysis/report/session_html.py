@@ -37,7 +37,6 @@ from m2s2hil.analysis.evaluation.loading import load_cube, load_frame
 from m2s2hil.analysis.qc import FLAGS, QcConfig, capture_stability, qc_of_meta, qc_summary
 from m2s2hil.analysis.report.charts import qc_histogram_png
 from m2s2hil.analysis.report.coverage import coverage_section
-from m2s2hil.analysis.segmenters.masks import pixel_mask
 from m2s2hil.atomic import write_text_atomic
 from m2s2hil.catalog import load_catalog
 from m2s2hil.processing.display import false_colour
@@ -101,7 +100,7 @@ def _compute_qc(job: FrameJob, config: QcConfig) -> tuple[float | None, list[str
     # the cube with the clipping mask the processor gave at capture (rebuilt from the raw frame)
     frame = load_frame(job)
     full_scale = (1 << int(job.camera.get("bit_depth", 10))) - 1
-    res = capture_stability(frame.cube, pixel_mask(frame.saturated), config=config, full_scale=full_scale)
+    res = capture_stability(frame.cube, frame.saturated_pixels, config=config, full_scale=full_scale)
     return res.score, list(res.flags), frame.cube
 
 

@@ -28,15 +28,6 @@ def takes_saturated(segment: Any) -> bool:
     return "saturated" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
 
 
-def pixel_mask(saturated: np.ndarray | None) -> np.ndarray | None:
-    """A per-band mask reduced to its pixels (any band clipped); an (H, W) mask or None as given.
-    For inputs that mix the bands, such as an RGB rendering."""
-    if saturated is None:
-        return None
-    mask = np.asarray(saturated, dtype=bool)
-    return np.asarray(mask.any(axis=0)) if mask.ndim == 3 else mask
-
-
 def segment_masked(segmenter: Any, cube: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
     """``segmenter.segment(cube, saturated=saturated)`` when it takes the mask and one is given,
     else ``segmenter.segment(cube)``."""

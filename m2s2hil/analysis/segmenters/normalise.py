@@ -61,11 +61,11 @@ class Reliability:
 
     bands: np.ndarray  # int indices of the bands the features use (clipped-out bands left out)
     clipped: np.ndarray  # bool (bands, H, W): the band clipped (at its plateau, or a given per-band mask)
+    plateau: np.ndarray  # bool (bands, H, W): at the plateau the cube itself shows
     saturated: np.ndarray  # a used band clipped (or the given mask)
     dark: np.ndarray  # near-black: energy (used bands) < snr_min × noise floor
     noise: np.ndarray  # (bands,) noise floor σ per band, cube units
     snr: np.ndarray  # energy / noise floor energy (used bands)
-    plateau: np.ndarray | None = None  # bool (bands, H, W): at the plateau the cube shows (None: clipped)
 
     @property
     def unreliable(self) -> np.ndarray:
@@ -194,7 +194,7 @@ def reliability(
     noise = backdrop_noise(cube, fg)
     energy = np.sqrt(np.einsum("bhw,bhw->hw", cube[bands], cube[bands]))
     snr = energy / noise_energy(noise, bands)
-    return Reliability(bands, clipped, sat & fg, (snr < snr_min) & fg, noise, snr, plateau)
+    return Reliability(bands, clipped, plateau, sat & fg, (snr < snr_min) & fg, noise, snr)
 
 
 def _given_mask(saturated: np.ndarray | None, n_bands: int, shape: tuple[int, ...]

@@ -756,9 +756,9 @@ class SpectralSegmenter:
         the foreground (``feats``: ``arr``'s clustering features, already computed); returns the
         labels (renumbered by size) and those pixels, or the labels unchanged and None."""
         clipped = rel.clipped[rel.bands]
-        # only pixels with a band at its plateau are censored data; a pixel only the processor's mask
-        # flags (one of a band's mosaic positions clipped: the averaged value is bent, not at the
-        # plateau) has no lower bound to test, and its bent shape is no material's (tenth pass)
+        # only pixels with a band known to be clipped (at its plateau, or in a per-band mask) are
+        # censored data; a pixel only a per-pixel mask flags has no band whose lower bound to test,
+        # and its bent shape is no material's (tenth and eleventh passes)
         sat = rel.saturated & fg & clipped.any(axis=0)
         good = fg & ~rel.unreliable
         n = int(labels.max())
@@ -773,9 +773,8 @@ class SpectralSegmenter:
         if np.isfinite(noise_deg):
             tau = min(max(tau, CENSORED_NOISE_FACTOR * noise_deg), 45.0)
         x, observed = arr[:, sat].T, ~clipped[:, sat].T
-        on = None if rel.plateau is None else rel.plateau[rel.bands]
-        bounds = lower_bounds(x, observed, plateau_levels(arr, clipped if on is None else on),
-                              None if on is None else on[:, sat].T)
+        on = rel.plateau[rel.bands]
+        bounds = lower_bounds(x, observed, plateau_levels(arr, on), on[:, sat].T)
         un = np.zeros_like(fg)
         un[sat] = ~explained(x, observed, means, bounds, tau_deg=tau)
         core = un & ndimage.binary_erosion(un)
