@@ -178,10 +178,13 @@ def band_saturation(raw_mask: np.ndarray, method: str, layout: MosaicLayout) -> 
     plateau, which the cube alone cannot tell from a material's shape (docs/evaluation.md)."""
     mask = np.asarray(raw_mask, dtype=bool)
     reach = _reach(method)
+    n = layout.n
+    if not mask.any():  # most frames: nothing clipped, nothing to spread
+        shape = mask.shape if reach.full_resolution else (mask.shape[0] // n, mask.shape[1] // n)
+        return np.zeros((layout.n_bands, *shape), bool)
     if not reach.per_band:
         one = cube_saturation(mask, method, layout.n)
         return np.broadcast_to(one, (layout.n_bands, *one.shape)).copy()
-    n = layout.n
     if not reach.full_resolution:
         h, w = mask.shape
         cells = mask.reshape(h // n, n, w // n, n)
@@ -190,9 +193,15 @@ def band_saturation(raw_mask: np.ndarray, method: str, layout: MosaicLayout) -> 
             for r, c in spots:
                 out[b] |= cells[:, r, :, c]
         return out
-    bands = layout.band_map(*mask.shape)
     radius = support_radius(method, n)
-    return np.stack([grow_mask(mask & (bands == b), radius) for b in range(layout.n_bands)])
+    out = np.empty((layout.n_bands, *mask.shape), bool)
+    mine = np.empty(mask.shape, bool)
+    for b, spots in enumerate(layout.positions):  # the band's own samples: strided copies, not a map
+        mine.fill(False)
+        for r, c in spots:
+            mine[r::n, c::n] = mask[r::n, c::n]
+        grow_mask(mine, radius, out=out[b])
+    return out
 
 
 def grow_mask(raw_mask: np.ndarray, radius: int, out: np.ndarray | None = None) -> np.ndarray:
