@@ -187,6 +187,9 @@ def test_which_bands_a_clipped_raw_pixel_spoils():
         others = np.delete(full, band, axis=0)
         assert not others.any()
         np.testing.assert_array_equal(full[band], grow_mask(raw_mask, support_radius(method, LAYOUT.n)))
+    for method, shape in (("superpixel", (4, 4)), ("wb", (16, 16))):  # nothing clipped: nothing flagged
+        none = band_saturation(np.zeros_like(raw_mask), method, LAYOUT)
+        assert none.shape == (LAYOUT.n_bands, *shape) and not none.any()
     ppid = band_saturation(raw_mask, "ppid", LAYOUT)
     assert all(np.array_equal(ppid[b], grow_mask(raw_mask, support_radius("ppid", LAYOUT.n)))
                for b in range(LAYOUT.n_bands))

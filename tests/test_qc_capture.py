@@ -167,3 +167,29 @@ def test_report_scores_frames_captured_without_qc(tmp_path):
     assert path == folder / "report.html"
     assert summary["computed_at_report"] == 2 and summary["scored"] == 2
     assert "scored at report time" in path.read_text()
+
+
+@pytest.fixture(scope="module")
+def clipped_report(tmp_path_factory):
+    """An over-exposed session captured without QC: the report scores it, and flags it."""
+    folder = simulate_session(tmp_path_factory.mktemp("clipped"), satellite="voyager", build="B2",
+                              lighting=("strong",), azimuth_step_deg=180.0, exposure={"strong": 0.05},
+                              size=128, qc=None, session_id="clipped-no-qc")
+    with SessionStore.open_path(folder) as store:
+        return write_session_report(store)
+
+
+def test_the_coverage_map_shows_the_flags_scored_at_report_time(clipped_report):
+    path, summary = clipped_report
+    html = path.read_text()
+    assert summary["computed_at_report"] == 2 and summary["flagged"] == 2
+    assert "2 flagged" in html  # the map's sentence and legend count what the contact sheet flags
+    svg = html[html.index("<svg"):html.index("</svg>")]
+    assert svg.count(">⚑</text>") == summary["flagged"]
+
+
+def test_the_report_fits_a_phone_screen(clipped_report, new_page):
+    path, _ = clipped_report
+    page = new_page(viewport={"width": 390, "height": 844})
+    page.goto(path.resolve().as_uri())
+    assert page.evaluate("document.documentElement.scrollWidth") <= 390  # wide tables scroll inside

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from m2s2hil.analysis.evaluation.table2 import LIGHTING_TITLES, LIGHTINGS, METRIC_TITLES, METRICS, Table2Row
 
@@ -201,6 +202,7 @@ def qc_histogram_png(scores: Sequence[float], threshold: float) -> bytes:
     ax.set_xlim(0, 1)
     ax.set_xlabel("QC stability score")
     ax.set_ylabel("frames")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # frames are counted, not measured
     ax.legend(fontsize=8, loc="upper left")
     return _png(fig)
 

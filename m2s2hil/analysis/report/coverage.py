@@ -31,8 +31,11 @@ def _order(values: Sequence[str], preferred: Sequence[str]) -> list[str]:
     return [v for v in preferred if v in values] + sorted(set(values) - set(preferred))
 
 
-def coverage(store: SessionStore) -> dict[str, Any]:
-    """The map's data: lightings, elevations, azimuths (degrees) and one cell per planned pose."""
+def coverage(store: SessionStore, qc: Mapping[str, tuple[float | None, list[str]]] | None = None
+             ) -> dict[str, Any]:
+    """The map's data: lightings, elevations, azimuths (degrees) and one cell per planned pose.
+    ``qc``: (score, flags) by event id for frames scored since capture (the report scores those
+    without stored QC), used instead of the stored record's."""
     planned = [e for e in store.sweep.expand(store.rig) if e.kind == "frame"]
     frames = {f.event_id: f for f in store.frames()}
     skips = {s.event_id: s for s in store.skips()}
@@ -46,7 +49,7 @@ def coverage(store: SessionStore) -> dict[str, Any]:
                                 "reason": None}
         fr = frames.get(ev.event_id)
         if fr is not None:
-            score, flags = qc_of_meta(fr.meta)
+            score, flags = (qc or {}).get(ev.event_id) or qc_of_meta(fr.meta)
             cell.update(n=fr.index, score=score, flags=flags, state="flagged" if flags else "captured")
         elif ev.event_id in skips:
             cell.update(state="skipped", reason=skips[ev.event_id].reason)
@@ -140,10 +143,11 @@ def coverage_svg(cov: Mapping[str, Any], *, cell_px: int = 18, link_prefix: str 
     return "".join(out)
 
 
-def coverage_section(store: SessionStore) -> str:
+def coverage_section(store: SessionStore, qc: Mapping[str, tuple[float | None, list[str]]] | None = None
+                     ) -> str:
     """The report's coverage section: a sentence and the map, whose captured cells link to the
-    frame in the contact sheet."""
-    cov = coverage(store)
+    frame in the contact sheet (``qc``: as ``coverage`` takes it)."""
+    cov = coverage(store, qc)
     counts = ", ".join(f"{n} {s}" for s, n in cov["counts"].items() if n)
     return (f"<p>Every planned pose of the sweep ({counts}): one grid per lighting condition, tilts down, "
             "azimuths across; a captured cell links to its frame in the contact sheet, a flagged one "

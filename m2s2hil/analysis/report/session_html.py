@@ -53,7 +53,8 @@ CSS = """
 --muted:#8d98a3;--head:#0f1215;--ok:#3ccf7a;--bad:#ff4d4f;--okline:#1d4d33;color-scheme:dark}}
 body{font-family:system-ui,sans-serif;margin:1.5em;color:var(--fg);background:var(--bg)}
 h1{font-size:1.4em} h2{font-size:1.15em;margin-top:1.6em;border-bottom:1px solid var(--line)}
-table{border-collapse:collapse;font-size:.85em}
+table{border-collapse:collapse;font-size:.85em;display:block;max-width:100%;overflow-x:auto}
+img,svg{max-width:100%;height:auto}
 td,th{border:1px solid var(--line);padding:2px 6px;text-align:right}
 th{background:var(--head)} td.l,th.l{text-align:left} td.score{color:#1a1f24}
 .sheet{display:flex;flex-wrap:wrap;gap:6px}
@@ -281,7 +282,9 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
     lights = _order([v.lighting for v in views], list(cat.lighting))
     elevs = _order([v.elevation for v in views], list(cat.elevations))
     out.append("<h2>Coverage</h2>")
-    out.append(coverage_section(store))  # the map (m2s2hil/analysis/report/coverage.py); the table below
+    # the map (m2s2hil/analysis/report/coverage.py) with the scores given here, also those computed
+    # at report time, so its flags agree with the contact sheet's; the table below
+    out.append(coverage_section(store, {v.event_id: (v.score, v.flags) for v in views}))
     out.append("<details><summary>QC per pose (table)</summary>")
     for lt in lights:
         vs = [v for v in views if v.lighting == lt]
