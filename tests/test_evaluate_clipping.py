@@ -146,6 +146,7 @@ def test_the_sweep_fit_takes_each_frames_mask(jobs):
     assert not isinstance(rgb, str), rgb
 
 
+@pytest.mark.slow  # two evaluations through the CLI (a few seconds)
 def test_cli_reports_the_clipped_share_and_can_leave_the_masks_out(jobs, tmp_path):
     session = str(Path(jobs[0].raw.path).parents[1])
     for flag, want in (((), True), (("--no-clip-masks",), False)):
