@@ -14,6 +14,13 @@ The verdict on each part: *met* / *short* by the estimate (as the issue defines 
 each frame labelled with it (``segmenters.sweep``); one job a cell, every frame of it in memory
 (about 0.9 GB). Its chart sets each cell beside the default's from ``robustness_wide.json``.
 
+Each frame also records why a cell fails (``why``): what a classifier told the truth scores on the
+segmenter's features (``metrics.bounds``), and the object's shares in shadow, near-black and clipped;
+the chart draws the first beside the Dice bars and a panel of every build's count per cell.
+``--cells`` runs named cells, the bracketed ones (``spot-80°-x16``: each pose again at 16 × the
+exposure, merged by ``processing.bracket``) included; ``--with-cells`` joins another run's cells
+to the table and chart; ``--alone`` draws the sweep variant without the frame-by-frame run beside it.
+
 ``--options`` passes segmenter keywords (JSON), ``--seed`` the simulator's noise seed, ``--name`` the
 output stem. Besides the Wilson interval (frames independent), each cell's K rate gets a 95 %
 interval with the nine builds resampled: frames of one build share its materials, and under the
@@ -54,6 +61,35 @@ def given(frame: Any, masks: str | None) -> Any:
     return frame.saturated if masks == "pixels" else None
 
 
+# In shadow: lit by less than this share of the light on the object's well-lit faces (its 95th
+# percentile). Not the median: under the spotlight at 80° more than half the object gets the room
+# bounce alone (the renderer's irradiance 0.02 against 0.8 on a lit face).
+SHADOW = 0.1
+
+
+def why(frame: Any, found: Any) -> dict[str, float]:
+    """What a frame's pixels still allow, beside what the segmenter made of them: the supervised
+    per-pixel references' Dice (``metrics.bounds``: classifiers told the truth, on the segmenter's
+    features); the object's share in shadow (the renderer's light on each pixel's surface below
+    ``SHADOW`` × its well-lit faces': under the spotlight the room bounce alone, about 1/65 of a lit
+    face), near-black (kept out of the fit as too dark, clipped in no band) and clipped in some band
+    (``SimFrame.band_saturated``)."""
+    from m2s2hil.analysis.metrics.bounds import pixel_bounds
+
+    obj = frame.gt > 0
+    n = max(int(obj.sum()), 1)
+    clipped = (frame.band_saturated.any(axis=0) if frame.band_saturated is not None
+               else np.zeros_like(obj))
+    dark = (found.unreliable & ~clipped) if found.unreliable is not None else np.zeros_like(obj)
+    shadow = float("nan")
+    if frame.irradiance is not None and obj.any():
+        light = frame.irradiance[obj]
+        shadow = float(np.mean(light < SHADOW * np.percentile(light, 95)))
+    refs = pixel_bounds(frame.cube, frame.gt)
+    return {"ref_qda": refs.qda, "ref_centroid": refs.centroid, "shadow": shadow,
+            "near_black": float((dark & obj).sum() / n), "clipped": float((clipped & obj).sum() / n)}
+
+
 def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | None = None, seed: int = 0,
              masks: str | None = None) -> list[dict[str, Any]]:
     """The nine builds of one view under ``cell``'s condition, segmented by the default."""
@@ -73,7 +109,7 @@ def run_view(cell: str, azimuth: float, size: int, options: dict[str, Any] | Non
             rows.append({"pose": f"{f.name.split('_')[0]}_{f.build}_{azimuth:g}", "azimuth": azimuth,
                          "k": a.n_materials, "true": visible_materials(f.gt),
                          "dice": float(score_clusters(f.gt, a.labels)[0].macro_dice),
-                         "s": time.process_time() - t0})
+                         "s": time.process_time() - t0, **why(f, a)})
     return rows
 
 
@@ -108,7 +144,7 @@ def run_cell_sweep(cell: str, azimuths: list[float], size: int, sample_size: int
                 rows.append({"pose": f"{key}_{f.azimuth_deg:g}", "azimuth": f.azimuth_deg, "k": a.n_materials,
                              "true": visible_materials(f.gt),
                              "dice": float(score_clusters(f.gt, a.labels)[0].macro_dice), "s": per,
-                             "components": seg.model.n_components, "shared": a.shared})
+                             "components": seg.model.n_components, "shared": a.shared, **why(f, a)})
     return rows
 
 
@@ -148,6 +184,11 @@ def summarise(cells: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
                 if paired.size > 1 else float("nan"))
         rate = hits / len(rows)
         b_low, b_high = build_interval(rows)
+        why_keys = ("ref_qda", "shadow", "near_black", "clipped")  # runs before the twelfth pass lack them
+        have = all(k in r for r in rows for k in why_keys) and all(
+            "ref_qda" in r for r in cells.get(REFERENCE, []))
+        ref_qda = {r["pose"]: r["ref_qda"] for r in cells.get(REFERENCE, [])} if have else {}
+        reach = [r["ref_qda"] - ref_qda[r["pose"]] for r in rows if r["pose"] in ref_qda]
         out.append({"cell": name, "frames": len(rows), "hits": hits, "within_1": rate,
                     "within_1_low": low, "within_1_high": high,
                     "within_1_build_low": b_low, "within_1_build_high": b_high,
@@ -155,21 +196,31 @@ def summarise(cells: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
                     "dice_delta": delta, "dice_delta_low": delta - half, "dice_delta_high": delta + half,
                     "k_verdict": verdict(rate, low, high, K_GOAL),
                     "dice_verdict": verdict(delta, delta - half, delta + half, DICE_GOAL),
-                    "s_median": float(np.median([r["s"] for r in rows]))})
+                    "s_median": float(np.median([r["s"] for r in rows])),
+                    # why: what a classifier told the truth loses (paired, against its own 60 % cell),
+                    # the object's near-black and clipped shares, and the misses' direction
+                    "ref_delta": float(np.mean(reach)) if reach else float("nan"),
+                    "shadow": float(np.mean([r["shadow"] for r in rows])) if have else float("nan"),
+                    "near_black": float(np.mean([r["near_black"] for r in rows])) if have else float("nan"),
+                    "clipped": float(np.mean([r["clipped"] for r in rows])) if have else float("nan"),
+                    "under": int(np.sum(err < -1)), "over": int(np.sum(err > 1))})
     return out
 
 
 def markdown(summary: list[dict[str, Any]]) -> str:
     lines = ["| cell | frames | K ±1 | 95 % interval | builds resampled | K: goal ≥ 90 % | Dice |"
-             " ΔDice vs 60 % (paired) | 95 % interval | Dice: goal ≥ −0.05 | CPU s/frame |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             " ΔDice vs 60 % (paired) | 95 % interval | Dice: goal ≥ −0.05 | CPU s/frame |"
+             " ΔDice told the truth (QDA) | in shadow | near-black | clipped | K < −1 / > +1 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in summary:
         lines.append(f"| {s['cell']} | {s['frames']} | {s['hits']} = {s['within_1']:.1%} | "
                      f"{s['within_1_low']:.1%}–{s['within_1_high']:.1%} | "
                      f"{s['within_1_build_low']:.1%}–{s['within_1_build_high']:.1%} | {s['k_verdict']} | "
                      f"{s['dice']:.3f} | "
                      f"{s['dice_delta']:+.3f} | {s['dice_delta_low']:+.3f} to {s['dice_delta_high']:+.3f} | "
-                     f"{s['dice_verdict']} | {s['s_median']:.2f} |")
+                     f"{s['dice_verdict']} | {s['s_median']:.2f} | {s['ref_delta']:+.3f} | "
+                     f"{s['shadow']:.1%} | {s['near_black']:.1%} | {s['clipped']:.1%} | "
+                     f"{s['under']} / {s['over']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -178,17 +229,73 @@ def _spread(values: np.ndarray, rows: list[dict[str, Any]], key: str) -> np.ndar
     return np.vstack([values - [r[f"{key}_low"] for r in rows], [r[f"{key}_high"] for r in rows] - values])
 
 
+Rows = dict[str, list[dict[str, Any]]]
+
+
+def by_build(cells: Rows) -> tuple[list[str], list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """Builds, cells, and per build × cell: frames within ±1, frames, and mean K − true."""
+    names = list(cells)
+    builds = list(dict.fromkeys("_".join(r["pose"].split("_")[:2]) for rows in cells.values() for r in rows))
+    hits, total, err = (np.zeros((len(builds), len(names))) for _ in range(3))
+    for j, name in enumerate(names):
+        for r in cells[name]:
+            i = builds.index("_".join(r["pose"].split("_")[:2]))
+            hits[i, j] += abs(r["k"] - r["true"]) <= 1
+            total[i, j] += 1
+            err[i, j] += r["k"] - r["true"]
+    return builds, names, hits, total, err / np.maximum(total, 1)
+
+
+def _why_panel(ax: Any, cells: dict[str, list[dict[str, Any]]], summary: list[dict[str, Any]]) -> None:
+    """Where the count fails: each build's share within ±1 per cell, with its mean K − true (the
+    sign says whether materials were lost or split), and under each cell the object's near-black
+    and clipped shares."""
+    builds, names, hits, total, err = by_build({s["cell"]: cells[s["cell"]] for s in summary})
+    share = hits / np.maximum(total, 1)
+    from matplotlib.colors import LinearSegmentedColormap
+
+    # pale where the build meets the share, deepening reds below it; black text reads on all
+    shades = LinearSegmentedColormap.from_list("short", [(0, "#de2d26"), (0.6 / 0.7, "#fcbba1"),
+                                                         (0.6 / 0.7 + 1e-3, "#e5f5e0"), (1, "#f7fcf5")])
+    ax.imshow(share, cmap=shades, vmin=0.3, vmax=1.0, aspect="auto")
+    for i in range(len(builds)):
+        for j in range(len(names)):
+            short = share[i, j] < K_GOAL
+            ax.text(j, i, f"{int(hits[i, j])}/{int(total[i, j])}  {err[i, j]:+.1f}", ha="center", va="center",
+                    fontsize=7, color="black", fontweight="bold" if short else "normal")
+    ax.set_yticks(range(len(builds)), [b.replace("_", " ") for b in builds], fontsize=8)
+    ticks = []
+    for s in summary:
+        shade, dark, clip = (s.get(k, float("nan")) for k in ("shadow", "near_black", "clipped"))
+        extra = ("" if not np.isfinite(dark)
+                 else f"\nshadow {shade:.0%}\nnear-black {dark:.0%}\nclipped {clip:.0%}")
+        ticks.append(f"{s['cell']}{extra}")
+    ax.set_xticks(range(len(names)), ticks, fontsize=8)
+    ax.set_ylabel("frames within ±1 per build,\nmean K − true (− lost, + split)", fontsize=9)
+
+
 def chart(summary: list[dict[str, Any]], path: Path, title: str,
-          beside: list[dict[str, Any]] | None = None, labels: tuple[str, str] = ("", "")) -> None:
+          beside: list[dict[str, Any]] | None = None, labels: tuple[str, str] = ("", ""),
+          cells: dict[str, list[dict[str, Any]]] | None = None) -> None:
     """K within ±1 and ΔDice per cell with their intervals; ``beside``: another variant's summary,
-    drawn to the left of each cell's bar (``labels``: the two variants' names)."""
+    drawn to the left of each cell's bar (``labels``: the two variants' names). With this run's
+    ``cells``, the chart says why as well as where: on the Dice panel what a classifier told the
+    truth loses (where it too falls past the line, the pixels no longer tell the materials apart),
+    and a third panel with each build's count per cell and the object's near-black and clipped
+    shares."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     x = np.arange(len(summary))
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    explain = cells is not None and all(np.isfinite(s.get("ref_delta", float("nan"))) for s in summary)
+    if explain:
+        side = max(11.0, 1.05 * len(summary) + 1.5)  # room for each cell's three shares
+        fig, (ax1, ax2, ax3) = plt.subplots(3, 1, figsize=(side, 10.5), height_ratios=(1, 1, 1.3))
+        ax1.sharex(ax2)
+    else:
+        fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
     width, shift = (0.6, 0.0) if beside is None else (0.38, 0.2)
     bars = {"capsize": 3, "error_kw": {"ecolor": "#333333"}}
     if beside is not None:
@@ -206,6 +313,12 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str,
             yerr=_spread(rate, summary, "within_1"), **bars)
     ax2.bar(x + shift, d, width, color="#6baed6", label=labels[1] or None,
             yerr=_spread(d, summary, "dice_delta"), **bars)
+    if explain:
+        reach = np.array([s["ref_delta"] for s in summary])
+        ax2.plot(x + shift, reach, "D", color="black", ms=6, ls="none",
+                 label="a classifier told the truth (QDA), against its own 60 % cell")
+        assert cells is not None
+        _why_panel(ax3, cells, summary)
     ax1.axhline(K_GOAL, color="red", lw=1, ls="--", label="goal ≥ 90 %")
     ax1.set_ylabel("K within ±1 of visible\n(95 % Wilson interval)")
     ax1.set_ylim(0.4 if beside is not None else 0.5, 1.02)
@@ -213,7 +326,11 @@ def chart(summary: list[dict[str, Any]], path: Path, title: str,
     ax2.axhline(DICE_GOAL, color="red", lw=1, ls="--", label="goal ≥ −0.05")
     ax2.axhline(0, color="black", lw=0.5)
     ax2.set_ylabel("macro Dice − Dice at 60 % peak\n(paired by pose, 95 % t interval)")
-    ax2.set_xticks(x, [s["cell"] for s in summary], rotation=30, ha="right")
+    if explain:
+        plt.setp(ax1.get_xticklabels(), visible=False)
+        ax2.set_xticks(x, [s["cell"] for s in summary], fontsize=8)
+    else:
+        ax2.set_xticks(x, [s["cell"] for s in summary], rotation=30, ha="right")
     ax2.legend(loc="lower left", fontsize=8)
     ax1.set_title(title, fontsize=10)
     fig.tight_layout()
@@ -233,6 +350,10 @@ def main() -> None:
     ap.add_argument("--options", type=json.loads, default={}, help="segmenter keywords as JSON")
     ap.add_argument("--name", help="output file stem (default robustness_wide[_sweep])")
     ap.add_argument("--beside", type=Path, help="a results JSON drawn beside this run's bars")
+    ap.add_argument("--with-cells", type=Path, help="a results JSON whose other cells join this run's table "
+                    "and chart (the same segmenter and seed: a run of a few more cells)")
+    ap.add_argument("--alone", action="store_true", help="draw this run alone (the sweep variant otherwise "
+                    "sets the frame-by-frame run beside it)")
     ap.add_argument("--seed", type=int, default=0, help="the simulator's noise seed")
     ap.add_argument("--masks", nargs="?", const="pixels", choices=("pixels", "bands"), default=None,
                     help="give the segmenter the processor's clipping masks: a pixel's (the default), or "
@@ -261,18 +382,18 @@ def main() -> None:
     chart(summary, args.out / f"{args.name or 'robustness_wide'}.png",
           f"{what} on the whole sweep: {n} frames per cell (3 satellites × 3 builds, "
           f"E1, azimuth 0–{360 - args.step:g}° every {args.step:g}°), {args.size // 4}² cubes",
-          beside, (args.beside.stem if args.beside else "", "this run" if args.beside else ""))
+          beside, (args.beside.stem if args.beside else "", "this run" if args.beside else ""), cells)
 
 
 def chosen_cells(args: argparse.Namespace) -> list[str]:
-    """The goal's cells (with the reference), or those ``--cells`` names."""
-    names = [n for n in CELLS if n in GOAL_CELLS or n == REFERENCE]
-    if args.cells:
-        unknown = sorted(set(args.cells) - set(names))
-        if unknown:
-            raise SystemExit(f"--cells: unknown {', '.join(unknown)}; choose from {', '.join(names)}")
-        names = [n for n in names if n in args.cells]
-    return names
+    """The goal's cells (with the reference), or those ``--cells`` names (any cell of ``CELLS``: the
+    bracketed ones are run only by name)."""
+    if not args.cells:
+        return [n for n in CELLS if n in GOAL_CELLS or n == REFERENCE]
+    unknown = sorted(set(args.cells) - set(CELLS))
+    if unknown:
+        raise SystemExit(f"--cells: unknown {', '.join(unknown)}; choose from {', '.join(CELLS)}")
+    return [n for n in CELLS if n in args.cells]
 
 
 def record(args: argparse.Namespace, cells: dict[str, list[dict[str, Any]]], t0: float, stem: str,
@@ -299,17 +420,26 @@ def sweep_main(args: argparse.Namespace) -> None:
         jobs = {n: pool.submit(run_cell_sweep, n, azimuths, args.size, args.sweep_sample_size, args.options,
                                args.seed, args.masks) for n in names}
         cells = {n: job.result() for n, job in jobs.items()}
+    if args.with_cells is not None:
+        earlier = json.loads(args.with_cells.read_text())["cells"]
+        joined = {**{n: rows for n, rows in earlier.items() if n not in cells}, **cells}
+        cells = {n: joined[n] for n in CELLS if n in joined}
     summary = record(args, cells, t0, args.name or "robustness_wide_sweep", variant="sweep",
-                     sweep_sample_size=args.sweep_sample_size)
+                     sweep_sample_size=args.sweep_sample_size,
+                     **({"with_cells": args.with_cells.name} if args.with_cells else {}))
     default = args.beside or args.out / "robustness_wide.json"
-    beside = summarise(json.loads(default.read_text())["cells"]) if default.exists() else None
+    use = default.exists() and not args.alone
+    beside = summarise(json.loads(default.read_text())["cells"]) if use else None
     n = len(next(iter(cells.values())))
-    chart(summary, args.out / f"{args.name or 'robustness_wide_sweep'}.png",
-          f"One mixture per sweep against frame by frame: {n} frames per cell (3 satellites × 3 builds, E1, "
-          f"azimuth 0–{360 - args.step:g}° every {args.step:g}°), {args.size // 4}² cubes",
-          beside, ("frame by frame (spectral, the default)",
-                   f"one mixture per sweep (spectral-sweep, {args.sweep_sample_size} rows)"
-                   + (f", {json.dumps(args.options)}" if args.options else "")))
+    what = (f"one mixture per sweep (spectral-sweep, {args.sweep_sample_size} rows)"
+            + (f", {json.dumps(args.options)}" if args.options else "")
+            + (f", clipping masks: {args.masks}" if args.masks else ""))
+    sweep = (f"{n} frames per cell (3 satellites × 3 builds, E1, azimuth 0–{360 - args.step:g}° every "
+             f"{args.step:g}°), {args.size // 4}² cubes")
+    title = (f"Where the goal fails and why, seed {args.seed}: {sweep}" if beside is None
+             else f"One mixture per sweep against frame by frame: {sweep}")
+    chart(summary, args.out / f"{args.name or 'robustness_wide_sweep'}.png", title, beside,
+          ("frame by frame (spectral, the default)" if beside is not None else "", what), cells)
 
 
 if __name__ == "__main__":

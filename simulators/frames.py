@@ -78,6 +78,14 @@ class FrameTruth:
         rate = self._shaded.rate if self._rate is None else self._rate
         return rate * np.float32(self.dn_scale)
 
+    def irradiance(self) -> np.ndarray:
+        """(H, W) float32 light reaching each pixel's surface, before its reflectance (the
+        renderer's diffuse factor: 1 for a face square to one lamp of unit irradiance; the room
+        bounce alone in a shadow); zero with the cap on and on the backdrop's own light."""
+        if self._shaded is None:
+            return np.zeros(self.labels.shape, dtype=np.float32)
+        return np.asarray(self._shaded.diffuse, dtype=np.float32)
+
     def radiance(self) -> np.ndarray:
         """(n_bands, H, W) float32 noise-free signal DN of every band at every pixel."""
         with self._lock:

@@ -227,3 +227,30 @@ def test_snapshot_command_writes_pictures(tmp_path):
     assert used == {colour_of(m) for m in ["background", *catalog_materials("iss", "B2")]}
     bad = CliRunner().invoke(app, ["sim", "snapshot", "--sat", "mir", "--out", str(out), "--rig", str(rig)])
     assert bad.exit_code != 0
+
+
+def test_irradiance_is_the_light_on_each_surface_and_the_spotlight_casts_shadows(vclock):
+    """``FrameTruth.irradiance``: the renderer's diffuse factor. Under the spotlight at 80° a
+    share of the mockup gets the room bounce alone (``spot_ambient`` of the lamp's output); under
+    the five shadowless bars no pixel is that dark; with the cap on there is no light."""
+    from m2s2hil.simulators.shading import LightingParams
+
+    spot_world = make_world(vclock, lamps=(5,))
+    spot_world.spot_angle_deg = 80.0
+    spot = SimFrameSource(spot_world, MODEL, catalog_materials, seed=1)
+    spot.capture(0.005)
+    truth = spot.truth()
+    light = truth.irradiance()
+    assert light.shape == (N, N) and light.dtype == np.float32
+    obj = light[truth.labels > 0]
+    ambient = LightingParams().spot_ambient * truth.lamps[5]
+    in_shadow = np.isclose(obj, ambient, rtol=1e-4)
+    assert 0.02 < in_shadow.mean() < 0.9  # some faces behind the mockup's own parts
+    assert np.median(obj) > 20 * ambient  # a lit face gets tens of times the bounce
+    bars = SimFrameSource(make_world(vclock), MODEL, catalog_materials, seed=1)
+    bars.capture(0.005)
+    lit = bars.truth().irradiance()[bars.truth().labels > 0]
+    assert lit.min() > 0.1 * np.median(lit)
+    spot_world.set_lens_cap(True)
+    spot.capture(0.005)
+    assert not spot.truth().irradiance().any()

@@ -49,3 +49,7 @@ class LayoutError(ProcessingError, UsageError):
 
 class CalibrationError(ProcessingError, KeyedError):
     """A camera calibration file that cannot be used; ``source`` names the file, ``key`` the entry."""
+
+
+class BracketError(ProcessingError, UsageError):
+    """An exposure bracket whose frames cannot be merged: shapes, exposures or masks that do not agree."""

@@ -11,7 +11,10 @@ The label map is reduced to the cube grid by ``loading.labels_to_cube``.
 Conditions for the robustness benchmark (``benchmarks/bench_robustness.py``): ``peak_fraction``
 (0.02–2: above 1 the brightest band clips), ``spot_angle_deg`` (the spotlight's incidence),
 ``temperature_c`` (dark current), ``read_noise_e`` (sensor noise) and ``fill`` (the mockup's
-bounding radius as a fraction of the frame side); None keeps the rig's value. Each frame also
+bounding radius as a fraction of the frame side); None keeps the rig's value. ``bracket`` takes
+each pose again at that many times the exposure (up to ``MAX_EXPOSURE_S``) and merges the two
+(``processing.bracket``): the cube reads like the first frame with its shadows lifted out of
+the noise, and its masks are where both clipped. Each frame also
 carries the processor's ``saturated`` mask (True where a band clipped) and ``band_saturated``,
 which bands.
 
@@ -31,6 +34,7 @@ from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.evaluation.loading import labels_to_cube
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import load_rig
+from m2s2hil.processing.bracket import merge_bracket
 from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark
 from m2s2hil.processing.mosaic import MosaicLayout
@@ -38,6 +42,7 @@ from m2s2hil.processing.stability import band_saturation
 from m2s2hil.sim_config import build_frame_source, build_world
 from m2s2hil.simulators.clock import VirtualClock
 
+MAX_EXPOSURE_S = 2.0  # the study's cap on a frame's exposure (the plan allows 5 s: plan.model)
 VISIBLE_FRACTION = 0.005
 VISIBLE_PIXELS = 20
 PEAK_FRACTION = 0.6
@@ -59,10 +64,20 @@ class SimFrame:
     exposure_s: float
     saturated: np.ndarray | None = None  # bool (h, w): a band clipped (processing's saturated_mask)
     band_saturated: np.ndarray | None = None  # bool (bands, h, w): which bands (stability.band_saturation)
+    # float32 (h, w): the light reaching each pixel's surface, the renderer's truth (FrameTruth.irradiance),
+    # averaged over the cube's cells; where it is a small part of the object's median, a shadow
+    irradiance: np.ndarray | None = None
 
     @property
     def name(self) -> str:
         return f"{self.satellite}_{self.build}_{self.lighting}_{self.elevation}_{self.azimuth_deg:g}"
+
+
+def cell_means(image: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``image`` (H, W) averaged over the n × n cells of a cube of ``shape`` (h, w), H = n·h."""
+    h, w = int(shape[0]), int(shape[1])
+    n = image.shape[0] // h
+    return np.asarray(image[: n * h, : n * w], dtype=np.float32).reshape(h, n, w, n).mean(axis=(1, 3))
 
 
 def visible_materials(gt: np.ndarray) -> int:
@@ -89,6 +104,7 @@ def simulated_frames(
     temperature_c: float | None = None,
     read_noise_e: float | None = None,
     fill: float | None = None,
+    bracket: float | None = None,
 ) -> Iterator[SimFrame]:
     """One frame per satellite × build × lighting × elevation × azimuth on a ``size``² sensor;
     frames whose ``name`` is in ``skip`` are not rendered (a cache has them). The condition
@@ -97,6 +113,9 @@ def simulated_frames(
         raise AnalysisInputError("peak_fraction", f"must lie in (0, 10], got {peak_fraction}")
     if fill is not None and not 0 < fill < 1:
         raise AnalysisInputError("fill", f"must lie in (0, 1), got {fill}")
+    if bracket is not None and not 1 < bracket <= 1000:
+        problem = f"must lie in (1, 1000] (the long exposure over the short), got {bracket}"
+        raise AnalysisInputError("bracket", problem)
     cfg = load_rig(None)
     if read_noise_e is not None:
         sensor = cfg.simulation.sensor.model_copy(update={"read_noise_e": float(read_noise_e)})
@@ -114,6 +133,20 @@ def simulated_frames(
         src.scene.params = replace(src.scene.params, fill=float(fill))
     layout = MosaicLayout.from_camera(model)
     full = float(model.full_scale)
+
+    def develop(raw: np.ndarray, exposure: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The super-pixel cube of ``raw`` less a master of two lens-capped frames at its exposure,
+        the processor's clipping mask and which bands clipped (the engine's own path)."""
+        world.set_lens_cap(True)
+        darks = [src.capture(exposure) for _ in range(2)]
+        world.set_lens_cap(False)
+        dark = build_master_dark(darks, exposure_s=exposure, gain=1.0,
+                                 temperature_c=world.sensor_temperature_c)
+        done = FrameProcessor("superpixel", model, dark=dark).process(raw)
+        return (np.array(done.cube, dtype=np.float32, copy=True),
+                np.array(done.saturated_mask, dtype=bool, copy=True),
+                band_saturation(raw >= model.full_scale, "superpixel", layout))
+
     skipped = set(skip)
     for light in lightings:
         for lamp in cfg.lamps.values():
@@ -136,18 +169,17 @@ def simulated_frames(
                         src.capture(0.005)
                         truth = src.truth()
                         peak = float(np.percentile(truth.signal()[truth.labels > 0], 99.5))
-                        exposure = min(2.0, 0.005 * peak_fraction * full / max(peak, 1e-6))
+                        exposure = min(MAX_EXPOSURE_S, 0.005 * peak_fraction * full / max(peak, 1e-6))
                         raw = src.capture(exposure)
                         labels = np.array(src.truth().labels, copy=True)
-                        world.set_lens_cap(True)
-                        darks = [src.capture(exposure) for _ in range(2)]
-                        world.set_lens_cap(False)
-                        dark = build_master_dark(darks, exposure_s=exposure, gain=1.0,
-                                                 temperature_c=world.sensor_temperature_c)
-                        done = FrameProcessor("superpixel", model, dark=dark).process(raw)
-                        cube = np.array(done.cube, dtype=np.float32, copy=True)
-                        sat_mask = np.array(done.saturated_mask, dtype=bool, copy=True)
-                        by_band = band_saturation(raw >= model.full_scale, "superpixel", layout)
+                        irr = src.truth().irradiance()
+                        cube, sat_mask, by_band = develop(raw, exposure)
+                        if bracket is not None:  # the same pose again, longer, merged per band
+                            longer = min(MAX_EXPOSURE_S, exposure * bracket)
+                            cube2, _, by_band2 = develop(src.capture(longer), longer)
+                            merged = merge_bracket([cube, cube2], [exposure, longer], [by_band, by_band2])
+                            cube, by_band = merged.cube, merged.clipped
+                            sat_mask = by_band.any(axis=0)
                         gt = labels_to_cube(labels, cube.shape[1:])
                         yield SimFrame(sat, build, light, elev, float(az), cube, gt, materials, exposure,
-                                       sat_mask, by_band)
+                                       sat_mask, by_band, cell_means(irr, cube.shape[1:]))
