@@ -65,7 +65,7 @@ class SimFrame:
     saturated: np.ndarray | None = None  # bool (h, w): a band clipped (processing's saturated_mask)
     band_saturated: np.ndarray | None = None  # bool (bands, h, w): which bands (stability.band_saturation)
     # float32 (h, w): the light reaching each pixel's surface, the renderer's truth (FrameTruth.irradiance),
-    # averaged over the cube's cells; where it is a small part of the object's median, a shadow
+    # averaged over the cube's cells; a small part of the light on the object's well-lit faces is a shadow
     irradiance: np.ndarray | None = None
 
     @property
