@@ -34,6 +34,9 @@ def test_the_result_is_on_the_first_frames_scale():
     ok = np.zeros(rate.shape, bool)
     m = merge_bracket([rate * 8.0, rate * 2.0], [8.0, 2.0], [ok, ok])
     assert np.allclose(m.cube, rate * 8.0)
+    # the scale is exposure × gain: 10 ms at gain 1 and 10 ms at gain 4 bracket like 10 and 40 ms
+    gained = merge_bracket([rate * 0.01, rate * 0.04], [0.01 * 1.0, 0.01 * 4.0], [ok, ok])
+    assert np.allclose(gained.cube, rate * 0.01)
 
 
 @pytest.mark.parametrize(("cubes", "scales", "masks", "problem"), [
