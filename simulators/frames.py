@@ -81,7 +81,8 @@ class FrameTruth:
     def irradiance(self) -> np.ndarray:
         """(H, W) float32 light reaching each pixel's surface, before its reflectance (the
         renderer's diffuse factor: 1 for a face square to one lamp of unit irradiance; the room
-        bounce alone in a shadow); zero with the cap on and on the backdrop's own light."""
+        bounce alone in a shadow; on the backdrop, the light the backdrop gets); zero with the
+        cap on."""
         if self._shaded is None:
             return np.zeros(self.labels.shape, dtype=np.float32)
         return np.asarray(self._shaded.diffuse, dtype=np.float32)

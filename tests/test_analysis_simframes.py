@@ -3,18 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from sim_frame import one_frame
-
-from m2s2hil.analysis.study.simframes import cell_means
-
-
-def test_cell_means_average_each_cube_cell():
-    image = np.arange(64, dtype=np.float32).reshape(8, 8)
-    out = cell_means(image, (2, 2))
-    assert out.shape == (2, 2)
-    assert out[0, 0] == pytest.approx(image[:4, :4].mean())
-    assert out[1, 0] == pytest.approx(image[4:, :4].mean())
 
 
 def test_a_frame_under_the_spotlight_knows_its_shadows():

@@ -53,17 +53,16 @@ def merge_bracket(cubes: Sequence[np.ndarray], scales: Sequence[float],
         raise BracketError(f"exposure × gain must be finite and > 0, got {list(scales)}")
     ref = float(t[0])
     # float32 throughout: a 10-bit value × a few frames is far inside its 24-bit mantissa
-    counts = np.zeros(shape, np.float32)
-    time = np.zeros(shape, np.float32)
+    cube = np.zeros(shape, np.float32)  # the counts, then (in place) their rate at ``ref``
+    exposed = np.zeros(shape, np.float32)
     used = np.zeros(shape, np.uint8)
     for c, m, ti in zip(cubes, clipped, t, strict=True):
         ok = ~np.asarray(m, dtype=bool)
-        np.add(counts, c, out=counts, where=ok)
-        np.add(time, np.float32(ti), out=time, where=ok)
+        np.add(cube, c, out=cube, where=ok)
+        np.add(exposed, np.float32(ti), out=exposed, where=ok)
         used += ok
     everywhere = used == 0
-    cube = counts
-    np.divide(counts, time, out=cube, where=~everywhere)
+    np.divide(cube, exposed, out=cube, where=~everywhere)
     cube *= np.float32(ref)
     if everywhere.any():  # clipped in every frame: the shortest frame's value, scaled
         shortest = int(np.argmin(t))

@@ -37,7 +37,7 @@ from m2s2hil.config import load_rig
 from m2s2hil.processing.bracket import merge_bracket
 from m2s2hil.processing.chain import FrameProcessor
 from m2s2hil.processing.dark import build_master_dark
-from m2s2hil.processing.mosaic import MosaicLayout
+from m2s2hil.processing.mosaic import MosaicLayout, cell_mean
 from m2s2hil.processing.stability import band_saturation
 from m2s2hil.sim_config import build_frame_source, build_world
 from m2s2hil.simulators.clock import VirtualClock
@@ -71,13 +71,6 @@ class SimFrame:
     @property
     def name(self) -> str:
         return f"{self.satellite}_{self.build}_{self.lighting}_{self.elevation}_{self.azimuth_deg:g}"
-
-
-def cell_means(image: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """``image`` (H, W) averaged over the n × n cells of a cube of ``shape`` (h, w), H = n·h."""
-    h, w = int(shape[0]), int(shape[1])
-    n = image.shape[0] // h
-    return np.asarray(image[: n * h, : n * w], dtype=np.float32).reshape(h, n, w, n).mean(axis=(1, 3))
 
 
 def visible_materials(gt: np.ndarray) -> int:
@@ -182,4 +175,4 @@ def simulated_frames(
                             sat_mask = by_band.any(axis=0)
                         gt = labels_to_cube(labels, cube.shape[1:])
                         yield SimFrame(sat, build, light, elev, float(az), cube, gt, materials, exposure,
-                                       sat_mask, by_band, cell_means(irr, cube.shape[1:]))
+                                       sat_mask, by_band, cell_mean(irr[np.newaxis], layout.n)[0])
