@@ -203,7 +203,8 @@ def qc_histogram_png(scores: Sequence[float], threshold: float) -> bytes:
     ax.set_xlabel("QC stability score")
     ax.set_ylabel("frames")
     ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # frames are counted, not measured
-    ax.legend(fontsize=8, loc="upper left")
+    # above the plot: flagged frames pile up at the left, good ones at the right, under either corner
+    ax.legend(fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.0), frameon=False)
     return _png(fig)
 
 
