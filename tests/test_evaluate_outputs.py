@@ -46,7 +46,7 @@ def job(n_classes: int = 4) -> FrameJob:
 def scene(monkeypatch):
     cube, gt = synthetic_scene((32, 32), 3, seed=4)
     frame = LoadedFrame(cube, None)  # no raw frame: no clipping mask
-    monkeypatch.setattr(evaluate, "load_frame", lambda _job, _reprocess=None, masks=True: frame)
+    monkeypatch.setattr(evaluate, "load_frame", lambda _job, _reprocess=None, masks=True, bracket=True: frame)
     monkeypatch.setattr(evaluate, "load_truth", lambda _job, _shape: gt)
     return cube, gt
 

@@ -2,6 +2,7 @@
 
     capture --sat hubble --build B2 --light weak
     capture --sat voyager --build B3 --light all --tilt E1 --dry-run
+    capture --sat iss --build B3 --light dir --bracket 16
     capture --resume 20261124T213811-hubble-B2-weak-aed7
 
 Exit codes: 0 completed; 1 failed (also: the rig could not be opened, one line naming the
@@ -74,9 +75,29 @@ def parse_lights(values: list[str]) -> list[str]:
     return out
 
 
+def parse_bracket(values: list[str], lights: list[str]) -> dict[str, list[float]]:
+    """``--bracket``: ``16`` or ``4,16`` (extra exposures for every condition captured) or
+    ``dir=16`` (that condition only); repeatable."""
+    cat = load_catalog()
+    out: dict[str, list[float]] = {}
+    for v in values:
+        name, sep, factors = v.rpartition("=")
+        keys = [cat.light(name.strip()).key] if sep else list(lights)
+        try:
+            numbers = [float(f) for f in factors.split(",") if f.strip()]
+        except ValueError:
+            raise UsageError(f"--bracket {v!r}: factors are numbers, e.g. 16 or dir=4,16") from None
+        if not numbers:
+            raise UsageError(f"--bracket {v!r}: no factor given, e.g. 16 or dir=4,16")
+        for k in keys:
+            out.setdefault(k, []).extend(f for f in numbers if f not in out.get(k, []))
+    return out
+
+
 def build_sweep(
     *, sat: str, build: str, lights: list[str], tilts: list[str] | None, mode: str, method: str | None,
     exposure: str | None, azimuth_step: float, frames_per_pose: int, config: RigConfig,
+    bracket: dict[str, list[float]] | None = None,
 ) -> Sweep:
     from m2s2hil.plan import parse_sweep
 
@@ -90,6 +111,7 @@ def build_sweep(
         "azimuth_step_deg": azimuth_step,
         "frames_per_pose": frames_per_pose,
         "processing": method or config.processing.method,
+        "bracket": bracket or {},
     }
     if exposure is not None:
         if exposure.lower() == "auto":
@@ -115,6 +137,8 @@ def _print_plan(sweep: Sweep, config: RigConfig) -> None:
     t.add_row("dark events", str(darks))
     t.add_row("axis order", sweep.chosen_order(config))
     t.add_row("mode", sweep.mode)
+    for cond, factors in sweep.bracket.items():
+        t.add_row(f"bracket ({cond})", "x1, " + ", ".join(f"x{f:g}" for f in factors))
     t.add_row("estimated duration", f"{est.total_s:.1f} s")
     for k, v in est.breakdown.items():
         t.add_row(f"  {k}", f"{v:.1f} s")
@@ -297,6 +321,8 @@ def capture(
     exposure: str | None = typer.Option(None, "--exposure", help="'auto' or milliseconds"),
     azimuth_step: float = typer.Option(10.0, "--azimuth-step", help="degrees between azimuths"),
     frames_per_pose: int = typer.Option(1, "--frames-per-pose", min=1),
+    bracket: list[str] = typer.Option(
+        [], "--bracket", help="extra exposures of each pose, as multiples: 16, 4,16 or dir=16 (repeatable)"),
     realtime: bool = typer.Option(False, "--realtime", help="simulated rig in real time, not virtual"),
     twin_checks: bool = typer.Option(
         False, "--twin-checks", help="check frames against the digital twin (wrong build, lamp out, ...)"),
@@ -316,17 +342,19 @@ def capture(
     if resume is None:
         if not (sat and build and light):
             raise UsageError("--sat, --build and --light are required (or --resume SESSION)")
+        lights = parse_lights(light)
         sweep = build_sweep(
-            sat=sat, build=build, lights=parse_lights(light), tilts=tilt or None, mode=mode,
+            sat=sat, build=build, lights=lights, tilts=tilt or None, mode=mode,
             method=method, exposure=exposure, azimuth_step=azimuth_step,
-            frames_per_pose=frames_per_pose, config=config,
+            frames_per_pose=frames_per_pose, config=config, bracket=parse_bracket(bracket, lights),
         )
         check_demosaic_method(sweep.processing)
         if dry_run:
             _print_plan(sweep, config)
             raise typer.Exit(EXIT_OK)
-    elif dry_run or sat or build or light:
-        raise UsageError("--resume takes the plan from the session: drop --sat/--build/--light/--dry-run")
+    elif dry_run or sat or build or light or bracket:
+        raise UsageError(
+            "--resume takes the plan from the session: drop --sat/--build/--light/--bracket/--dry-run")
 
     from m2s2hil.analysis.qc import capture_qc_hook
     from m2s2hil.engine.build import build_run, open_capture_rig

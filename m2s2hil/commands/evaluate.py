@@ -61,6 +61,10 @@ def evaluate_cmd(
         True, "--clip-masks/--no-clip-masks",
         help="give the segmenters which bands clipped in each pixel, from the raw frames (default on)",
     ),
+    bracket: bool = typer.Option(
+        True, "--bracket/--no-bracket",
+        help="merge a bracketed pose's extra exposures into its image (default on); off: its own frame",
+    ),
     limit: int | None = typer.Option(None, "--limit", min=1, help="evaluate only the first N images"),
     pair_with: str | None = typer.Option(
         None, "--pair-with", help="a synthetic TARGET: the HIL session to compare with pose by pose"
@@ -89,6 +93,7 @@ def evaluate_cmd(
         reprocess=reprocess,
         rho=rho,
         clip_masks=clip_masks,
+        bracket=bracket,
     )  # type: ignore[arg-type]
     from m2s2hil.analysis.evaluation.synthetic import synthetic_target
     from m2s2hil.commands.synth import evaluate_synthetic_session

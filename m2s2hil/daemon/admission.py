@@ -29,19 +29,20 @@ EXPANDING = threading.BoundedSemaphore(1)
 
 def planned_frame_count(sweep: Sweep) -> float:
     """Frames a sweep asks for, without expanding it (inf when absurdly many):
-    lighting conditions × tilts × azimuths × frames per pose."""
+    tilts × azimuths × frames per pose × exposures per pose (a bracket's), summed over lightings."""
     ratio = 360.0 / sweep.azimuth_step_deg
     if not math.isfinite(ratio) or ratio > 1e9:
         return math.inf
     n_az = math.ceil(ratio - 1e-9)
-    return float(len(sweep.lighting) * len(sweep.tilts) * n_az * sweep.frames_per_pose)
+    return float(len(sweep.tilts) * n_az * sum(sweep.frames_per_pose_of(c) for c in sweep.lighting))
 
 
 def planned_dark_count(sweep: Sweep) -> int:
-    """Master darks: one per distinct exposure of the conditions used (the gain is one per sweep)."""
+    """Master darks: one per distinct exposure of the conditions used, a bracket's included (the gain
+    is one per sweep)."""
     if sweep.dark.frames <= 0:
         return 0
-    return len({sweep.exposure_for(c) for c in sweep.lighting})
+    return len({t for c in sweep.lighting for t in sweep.pose_exposures(c).values()})
 
 
 def estimate_bytes(sweep: Sweep, cfg: RigConfig, frames: int) -> int:

@@ -22,6 +22,7 @@ from m2s2hil.config import CameraModel
 from m2s2hil.drivers.interfaces import SplitSnap
 from m2s2hil.engine.exposure_search import ExposureResult, find_exposure
 from m2s2hil.plan import AutoExposureSettings, CaptureEvent, Sweep
+from m2s2hil.plan.model import bracket_exposure
 from m2s2hil.rig.opened import Rig
 from m2s2hil.store.session import SessionStore
 
@@ -98,7 +99,8 @@ class ExposureMeter:
         return bool(self.sweep.auto_exposure) and ev.lighting not in self.results
 
     def exposure(self, ev: CaptureEvent) -> tuple[float, ExposureResult | None]:
-        """``(exposure_s, result)``; ``result`` is None without auto exposure. Meters if needed."""
+        """``(exposure_s, result)``; ``result`` is None without auto exposure. Meters if needed; a
+        bracket member takes its factor × the metered exposure, within the camera's limits."""
         if not self.sweep.auto_exposure:
             return ev.exposure_s, None
         assert ev.lighting is not None
@@ -108,6 +110,8 @@ class ExposureMeter:
             self.results[ev.lighting] = res
             self.store.record_event("auto_exposure", {"lighting": ev.lighting, "event_id": ev.event_id,
                                                       **res.to_dict()})
+        if ev.bracket_member:
+            return bracket_exposure(res.exposure_s, ev.exposure_factor), res
         return res.exposure_s, res
 
     def _meter(self, ev: CaptureEvent) -> ExposureResult:

@@ -156,7 +156,12 @@ class FrameStages:
         calibration = (getattr(pf, "info", None) or {}).get("calibration")
         if calibration is not None:
             meta["calibration"] = calibration
-        if self.qc is not None:
+        if self.qc is not None and ev.bracket_member:
+            # Its lit faces clip by design (it is there for the shadows): the pose's own frame is
+            # the one checked, and a flag here would only tell the operator what was planned.
+            meta["qc"] = None
+            meta["qc_skipped"] = f"bracket member (x{ev.exposure_factor:g}): the pose's own frame is checked"
+        elif self.qc is not None:
             try:
                 meta["qc"] = jsonable(self.qc(pf, ev, meta))
             except Exception as exc:  # a QC bug must not lose the frame; it is recorded

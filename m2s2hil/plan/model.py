@@ -2,7 +2,9 @@
 
 A :class:`CaptureEvent` is frozen and has a stable ``event_id`` (:func:`dark_event_id`,
 :func:`frame_event_id`), so a resumed session can skip what it already has. One master dark
-is taken per distinct (exposure, gain); frame events point at theirs.
+is taken per distinct (exposure, gain); frame events point at theirs. A pose of a lighting
+condition the sweep brackets has one frame event per exposure: the pose's own (factor 1) and
+its bracket members (``exposure_factor`` × that exposure), taken in a row without a move.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from m2s2hil.errors import CatalogError, KeyedError
 DEFAULT_EXPOSURE_S: dict[str, float] = {"weak": 0.008, "strong": 0.005, "directional": 0.003}
 MIN_EXPOSURE_S = 100e-6  # TOUCAN limits (paper, 2.1)
 MAX_EXPOSURE_S = 5.0
+MAX_BRACKET = 4  # exposures a pose may add: each costs one exposure, one readout and one master dark
 AXES = ("light", "tilt", "azimuth")
 DEFAULT_AXIS_ORDER = "light>tilt>azimuth"
 
@@ -47,6 +50,11 @@ def condition_key(name: str) -> str:
 def _round_exposure(s: float) -> float:
     # Exposures are planned to the microsecond so darks can be matched exactly.
     return round(float(s), 6)
+
+
+def bracket_exposure(base_s: float, factor: float) -> float:
+    """A bracket member's exposure: ``factor`` × the pose's, within the camera's limits, to the µs."""
+    return _round_exposure(min(max(base_s * factor, MIN_EXPOSURE_S), MAX_EXPOSURE_S))
 
 
 def _with_defaults(v: dict[str, float]) -> dict[str, float]:
@@ -106,7 +114,9 @@ class CaptureEvent(PlanModel):
     """One step of a sweep. ``kind == "dark"``: take ``n_frames`` lens-capped frames at
     ``exposure_s``/``gain`` and store their master as ``event_id``. ``kind == "frame"``:
     switch to ``lighting``, move to (``azimuth_deg``, ``tilt_deg``), settle, take one
-    frame, subtract the master dark ``dark_id``."""
+    frame, subtract the master dark ``dark_id``. A bracket member (``exposure_factor`` != 1) is
+    the same pose again at that multiple of the pose's exposure (processing.bracket merges
+    them)."""
 
     event_id: str
     index: int
@@ -125,6 +135,12 @@ class CaptureEvent(PlanModel):
     dark_id: str | None = None
     settle_s: float | None = None  # None: the rig's per-axis settle_s
     pass_index: int = 0  # which snake pass (run of azimuths at one light + tilt)
+    exposure_factor: float = 1.0  # a bracket member: this multiple of the pose's own exposure
+
+    @property
+    def bracket_member(self) -> bool:
+        """An extra exposure of a pose (its own frame has ``exposure_factor`` 1)."""
+        return self.exposure_factor != 1.0
 
 
 def dark_event_id(exposure_s: float, gain: float) -> str:
@@ -144,5 +160,14 @@ def _az_label(a: float) -> str:
     return f"az{round(a):03d}" if abs(a - round(a)) < 1e-9 else f"az{a:07.3f}"
 
 
-def frame_event_id(lighting: str, elevation: str, nominal_azimuth_deg: float, frame: int) -> str:
-    return f"{lighting}/{elevation}/{_az_label(nominal_azimuth_deg)}/f{frame}"
+def frame_event_id(lighting: str, elevation: str, nominal_azimuth_deg: float, frame: int,
+                   exposure_factor: float = 1.0) -> str:
+    """``<light>/<elevation>/az<deg>/f<k>``, and ``/x<factor>`` for a bracket member."""
+    base = f"{lighting}/{elevation}/{_az_label(nominal_azimuth_deg)}/f{frame}"
+    return base if exposure_factor == 1.0 else f"{base}/x{exposure_factor:g}"
+
+
+def bracket_base_id(event_id: str) -> str:
+    """The id of the pose's own frame for a bracket member's id (the id itself otherwise)."""
+    head, _, last = event_id.rpartition("/")
+    return head if head and last.startswith("x") else event_id

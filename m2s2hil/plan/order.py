@@ -97,6 +97,7 @@ class _Step(NamedTuple):
     dark_id: str | None
     settle_s: float | None
     pass_index: int
+    exposure_factor: float = 1.0
 
 
 def _build_steps(sweep: Sweep, rig: RigConfig, order: Sequence[str], lights: Sequence[str],
@@ -105,12 +106,13 @@ def _build_steps(sweep: Sweep, rig: RigConfig, order: Sequence[str], lights: Seq
     commanded = commanded_azimuths(nominal, rig)
     values = {"light": list(lights), "tilt": list(tilts), "azimuth": list(range(len(nominal)))}
     out: list[_Step] = []
+    # (condition, factor) -> exposure: the pose's own (factor 1) and its bracket's
+    exp_of = {(c, f): t for c in lights for f, t in sweep.pose_exposures(c).items()}
     if sweep.dark.frames > 0:
-        for e in sorted({sweep.exposure_for(c) for c in lights}):
+        for e in sorted(set(exp_of.values())):
             out.append(_Step("dark", None, None, None, None, None, None, 0, sweep.dark.frames, e, None,
                              None, 0))
-    exp_of = {c: sweep.exposure_for(c) for c in lights}
-    dark_of = {c: dark_event_id(exp_of[c], sweep.gain) if sweep.dark.frames > 0 else None for c in lights}
+    dark_of = {k: dark_event_id(e, sweep.gain) if sweep.dark.frames > 0 else None for k, e in exp_of.items()}
     # Nested loops with a snake: a loop runs backwards every other time it restarts.
     n_mid = 0
     pass_index = -1
@@ -125,10 +127,11 @@ def _build_steps(sweep: Sweep, rig: RigConfig, order: Sequence[str], lights: Seq
                 if key != last_pass_key:
                     pass_index += 1
                     last_pass_key = key
-                exp, did = exp_of[cond], dark_of[cond]
                 for k in range(sweep.frames_per_pose):
-                    out.append(_Step("frame", cond, elev, rig.elevations[elev], commanded[ai], nominal[ai],
-                                     ai, k, 1, exp, did, sweep.settle_s, pass_index))
+                    for f in sweep.exposure_factors(cond):
+                        out.append(_Step("frame", cond, elev, rig.elevations[elev], commanded[ai],
+                                         nominal[ai], ai, k, 1, exp_of[cond, f], dark_of[cond, f],
+                                         sweep.settle_s, pass_index, f))
     return out
 
 
@@ -140,12 +143,13 @@ def _materialise(sweep: Sweep, steps: Sequence[_Step]) -> list[CaptureEvent]:
             continue
         assert st.lighting and st.elevation and st.nominal_azimuth_deg is not None
         out.append(CaptureEvent(
-            event_id=frame_event_id(st.lighting, st.elevation, st.nominal_azimuth_deg, st.frame),
+            event_id=frame_event_id(st.lighting, st.elevation, st.nominal_azimuth_deg, st.frame,
+                                    st.exposure_factor),
             index=i, kind="frame", lighting=st.lighting, elevation=st.elevation, tilt_deg=st.tilt_deg,
             azimuth_deg=st.azimuth_deg, nominal_azimuth_deg=st.nominal_azimuth_deg,
             azimuth_index=st.azimuth_index, frame=st.frame, exposure_s=st.exposure_s, gain=sweep.gain,
             auto_exposure=sweep.auto_exposure, dark_id=st.dark_id, settle_s=st.settle_s,
-            pass_index=st.pass_index,
+            pass_index=st.pass_index, exposure_factor=st.exposure_factor,
         ))
     return out
 

@@ -23,15 +23,21 @@ from m2s2hil.plan.estimate import PlanEstimate, estimate, estimate_continuous
 from m2s2hil.plan.floor import PhysicalFloor
 from m2s2hil.plan.model import (
     AXES,
+    MAX_BRACKET,
+    MAX_EXPOSURE_S,
+    MIN_EXPOSURE_S,
     AutoExposureSettings,
     CaptureEvent,
     DarkPolicy,
     FixedExposure,
     PlanError,
     PlanModel,
+    bracket_exposure,
     condition_key,
 )
 from m2s2hil.plan.order import best_plan, sweep_floor
+
+Factor = Annotated[float, Field(gt=0, le=1000, strict=True)]  # a bracket's exposure multiple
 
 
 class Sweep(PlanModel):
@@ -58,6 +64,10 @@ class Sweep(PlanModel):
     axis_order: str = "auto"
     reorder: Annotated[bool, Field(strict=True)] = True  # choose the order of conditions and tilts by cost
     mode: Literal["stop-and-go", "continuous"] = "stop-and-go"
+    # Exposure brackets: lighting condition -> the extra exposures of each of its poses, as
+    # multiples of the pose's own (e.g. {"directional": [16]}: the spotlight's shadows at 16 x).
+    # Taken at the same pose right after its frame; processing.bracket merges them.
+    bracket: dict[str, list[Factor]] = Field(default_factory=dict)
 
     @field_validator("satellite")
     @classmethod
@@ -96,6 +106,25 @@ class Sweep(PlanModel):
             raise ValueError(f"elevation listed twice: {', '.join(dup)}")
         return keys
 
+    @field_validator("bracket")
+    @classmethod
+    def _bracket(cls, v: dict[str, list[float]]) -> dict[str, list[float]]:
+        out: dict[str, list[float]] = {}
+        for name, factors in v.items():
+            key = condition_key(name)
+            if key in out:
+                raise ValueError(f"lighting condition {key!r} listed twice")
+            if not factors:
+                continue  # no extra exposure: no bracket
+            if len(factors) > MAX_BRACKET:
+                raise ValueError(f"{key!r}: at most {MAX_BRACKET} extra exposures, got {len(factors)}")
+            if any(f == 1.0 for f in factors):
+                raise ValueError(f"{key!r}: factor 1 is the pose's own frame; list only the extra ones")
+            if len(set(factors)) != len(factors):
+                raise ValueError(f"{key!r}: a factor is listed twice")
+            out[key] = [float(f) for f in factors]
+        return out
+
     @field_validator("exposure", mode="before")
     @classmethod
     def _exposure_shorthand(cls, v: Any) -> Any:
@@ -126,6 +155,21 @@ class Sweep(PlanModel):
         order = self.axis_order
         if self.mode == "continuous" and order != "auto" and not order.endswith(">azimuth"):
             raise ValueError("continuous mode sweeps the turntable: azimuth must be the innermost axis")
+        if self.bracket and self.mode == "continuous":
+            raise ValueError("a bracket takes each pose again at another exposure, which needs the stage to "
+                             "stand still: use mode 'stop-and-go'")
+        for cond, factors in self.bracket.items():
+            if cond not in self.lighting:
+                raise ValueError(f"bracket names lighting condition {cond!r}, which the sweep does not "
+                                 f"capture ({', '.join(self.lighting)})")
+            if self.auto_exposure:  # the metered exposure is only known at run time: clamped then
+                continue
+            for f in factors:
+                t = self.exposure_for(cond) * f
+                if not MIN_EXPOSURE_S <= t <= MAX_EXPOSURE_S:
+                    raise ValueError(
+                        f"bracket {cond!r} x{f:g}: {t:g} s is outside the camera's "
+                        f"{MIN_EXPOSURE_S:g}-{MAX_EXPOSURE_S:g} s")
         return self
 
     # ------------------------------------------------------------------ views
@@ -138,6 +182,19 @@ class Sweep(PlanModel):
         exp = self.exposure
         table = exp.start_s if isinstance(exp, AutoExposureSettings) else exp.seconds
         return table[condition]
+
+    def exposure_factors(self, condition: str) -> tuple[float, ...]:
+        """The exposures of each pose of ``condition`` as multiples of its own: (1, *bracket)."""
+        return (1.0, *self.bracket.get(condition, ()))
+
+    def pose_exposures(self, condition: str) -> dict[float, float]:
+        """Factor -> planned (or, auto, starting) exposure of each frame of a pose of ``condition``."""
+        base = self.exposure_for(condition)
+        return {f: base if f == 1.0 else bracket_exposure(base, f) for f in self.exposure_factors(condition)}
+
+    def frames_per_pose_of(self, condition: str) -> int:
+        """Frame events per pose of ``condition``: ``frames_per_pose`` × its exposures."""
+        return self.frames_per_pose * len(self.exposure_factors(condition))
 
     def azimuths(self) -> list[float]:
         """Nominal azimuths, 0 <= a < 360, in grid order from ``azimuth_start_deg``."""

@@ -9,6 +9,10 @@ raw values, m2s2hil.store.export_hf) or as a Zarr store (m2s2hil.store.zarr_expo
   rounded up, so 1023 → 255 and the mapping never overflows).
 - ``HIL16/<same path>``: the same mosaic losslessly, a 16-bit single-channel PNG holding
   the sensor's DN unchanged (0..1023 for 10 bits; not rescaled).
+- ``HILbracket/<Satellite>/b<N>/e<N>/<light>_<k>_x<factor>.png``: a bracketed sweep's extra
+  exposures of pose ``k`` (``Sweep.bracket``), 16-bit like ``HIL16``. They stay out of ``HIL/``,
+  whose names the release fixes to one image per pose; the CSV has a row for each, with its
+  ``exposure_factor`` (1 for the pose's own frame) and exposure.
 - ``metadata/<session_id>.csv``: one row per image (pose commanded and read back,
   exposure, gain, lighting, temperature, dark id, sha256 of the raw TIFF, ...).
 - ``metadata/<session_id>.json``: what the release lacks: band centres, FWHM, the 4×4
@@ -73,7 +77,7 @@ CSV_COLUMNS = (
     "session_id", "event_id", "satellite", "build", "elevation", "lighting", "lighting_dataset", "k",
     "azimuth_index", "frame", "nominal_azimuth_deg", "azimuth_deg", "turntable_readback_deg", "tilt_deg",
     "tilt_readback_deg", "exposure_s", "gain", "temperature_c", "dark_id", "timestamp", "bit_depth",
-    "processing_method", "raw_sha256", "domain", "mask_file", "labels_file",
+    "processing_method", "raw_sha256", "domain", "mask_file", "labels_file", "exposure_factor",
 )
 SYNTH_COLUMNS = (
     "file", "mask_file", "band_files", "session_id", "event_id", "domain", "satellite", "build", "elevation",
@@ -174,6 +178,7 @@ def _row(store: SessionStore, fr: FrameRecord, n_az: int) -> dict[str, Any]:
         "processing_method": m.get("processing_method", store.sweep.processing),
         "raw_sha256": fr.files["raw"].sha256,
         "domain": "hil",
+        "exposure_factor": float(ev.get("exposure_factor", 1.0)),  # absent before brackets: 1
     }
 
 
@@ -210,6 +215,8 @@ def write_pairs(out: Path) -> Path | None:
                 key = (r["satellite"], r["build"], r["elevation"], az)
             except (KeyError, ValueError):
                 continue
+            if r.get("domain") != "synthetic" and r.get("exposure_factor", "1") not in ("", "1", "1.0"):
+                continue  # a bracket's extra exposure pairs through its pose's own frame
             (syn if r.get("domain") == "synthetic" else hil).setdefault(key, []).append(r)
     if not syn:
         return None
@@ -321,7 +328,9 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
     rows = [_row(store, fr, n_az) for fr in frames]
 
     def rel_name(r: dict) -> str:
-        return f"{r['lighting_dataset']}_{r['k']}.png"
+        factor = r["exposure_factor"]
+        tail = "" if factor == 1.0 else f"_x{factor:g}"
+        return f"{r['lighting_dataset']}_{r['k']}{tail}.png"
 
     meta_json = out / "metadata" / f"{store.session_id}.json"
     dark_dir = out / "metadata" / store.session_id
@@ -341,21 +350,27 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
         labels: list[tuple[FrameRecord, str, Path]] = []  # (frame, role, target): masks, projected labels
         for fr, r in zip(frames, rows, strict=True):
             sub = Path(sat_name) / b / f"e{int(r['elevation'][1:])}" / rel_name(r)
-            targets.append((out / "HIL" / sub, out / "HIL16" / sub))
-            r["file"] = f"HIL/{sub.as_posix()}"
-            r["file16"] = f"HIL16/{sub.as_posix()}"
+            if r["exposure_factor"] != 1.0:  # a bracket member: 16-bit only, beside the release's folders
+                targets.append((out / "HILbracket" / sub, out / "HILbracket" / sub))
+                r["file"] = r["file16"] = f"HILbracket/{sub.as_posix()}"
+            else:
+                targets.append((out / "HIL" / sub, out / "HIL16" / sub))
+                r["file"] = f"HIL/{sub.as_posix()}"
+                r["file16"] = f"HIL16/{sub.as_posix()}"
             for role, folder, col in LABEL_FOLDERS:
                 if role in fr.files:
                     labels.append((fr, role, out / folder / sub))
                     r[col] = f"{folder}/{sub.as_posix()}"
         meta_csv = out / "metadata" / f"{store.session_id}.csv"
-        _refuse_clash([p for t in targets for p in t] + [t for _, _, t in labels] + [meta_csv, meta_json]
+        _refuse_clash([p for t in targets for p in set(t)] + [t for _, _, t in labels] + [meta_csv, meta_json]
                       + [t for _, t in darks], overwrite)
         for fr, (p8, p16) in zip(frames, targets, strict=True):
             raw, _ = store.read_raw(fr.event_id)
-            write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))
+            if p8 != p16:
+                write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))
+                result.files.append(p8)
             write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))
-            result.files += [p8, p16]
+            result.files.append(p16)
             result.images += 1
             prog.step()
         for fr, role, target in labels:  # stored as 8-bit PNG already: copied as they are, checked

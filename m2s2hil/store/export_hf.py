@@ -97,7 +97,7 @@ def _features(h: int, w: int, n_bands: int, period: int) -> Any:
 
     numeric = {"k", "azimuth_index", "frame", "bit_depth"}
     floats = {"nominal_azimuth_deg", "azimuth_deg", "turntable_readback_deg", "tilt_deg", "tilt_readback_deg",
-              "exposure_s", "gain", "temperature_c", "timestamp"}
+              "exposure_s", "gain", "temperature_c", "timestamp", "exposure_factor"}
     cols: dict[str, Any] = {
         "raw": Array2D(shape=(h, w), dtype="uint16"),
         "image": Image(),

@@ -115,6 +115,8 @@ def _frames_dataset(store: SessionStore, xr: Any, da: Any, dark_keys: dict[str, 
         "azimuth_deg": ("frame", col(lambda fr: float(fr.meta["event"]["nominal_azimuth_deg"]))),
         "session_id": ("frame", col(lambda fr: store.session_id)),
         "event_id": ("frame", col(lambda fr: fr.event_id)),
+        # a bracket's extra exposure of its pose (Sweep.bracket); 1 for the pose's own frame
+        "exposure_factor": ("frame", col(lambda fr: float(fr.meta["event"].get("exposure_factor", 1.0)))),
         "exposure_s": ("frame", col(lambda fr: num(fr, "exposure_s"))),
         "gain": ("frame", col(lambda fr: num(fr, "gain"))),
         "temperature_c": ("frame", col(lambda fr: num(fr, "temperature_c"))),
@@ -158,10 +160,15 @@ def export_zarr(store: SessionStore, out: str | Path, *, progress: Progress | No
         if (old.sizes["y"], old.sizes["x"]) != (m.height, m.width):
             raise ZarrExportError(f"{out} holds {old.sizes['x']}x{old.sizes['y']} frames, "
                                   f"session {store.session_id} has {m.width}x{m.height}")
+        old_vars = set(old.variables)
         old.close()
     elif out.exists() and not fresh_root:
         raise ZarrExportError(f"{out} exists and is not a Zarr store")
     ds = _frames_dataset(store, xr, da, dark_keys, progress)
+    if exists and not fresh_root and "exposure_factor" not in old_vars:
+        # a store written before brackets keeps its layout: a bracket member is then told by its
+        # event id's /x<factor> alone
+        ds = ds.drop_vars("exposure_factor")
     chunk = {"chunks": (1, m.height, m.width)}
     encoding = {"raw": chunk, "labels": chunk, "projected_labels": chunk}
     with dask.config.set(scheduler="synchronous"):  # one frame in memory at a time
@@ -192,6 +199,7 @@ def zarr_frames(path: str | Path) -> list[dict[str, Any]]:
     export; ``raw``, ``dark`` and ``labels`` are references for :func:`read_ref`."""
     xr, _, _ = _libs()
     from m2s2hil.catalog import load_catalog
+    from m2s2hil.plan import bracket_base_id
 
     p = Path(path)
     ds = xr.open_zarr(p, consolidated=False)
@@ -207,6 +215,8 @@ def zarr_frames(path: str | Path) -> list[dict[str, Any]]:
     cols = {k: ds[k].values for k in keys}  # each coordinate read once
     for i in range(ds.sizes["frame"]):
         c = {k: _plain(cols[k][i]) for k in keys}
+        if bracket_base_id(str(c["event_id"])) != c["event_id"]:
+            continue  # a bracket's extra exposure: the export keeps it, the pose's image is its own frame
         d = dark_index.get(str(c["dark_key"]))
         jobs.append(dict(
             image_id=f"{c['session_id']}/{c['event_id']}", source=str(p), satellite=str(c["satellite"]),

@@ -31,6 +31,8 @@ def per_image_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]
                 "clipped_fraction",
                 "error",
                 "mask_error",
+                "bracket_frames",
+                "bracket_error",
             )
         }
         if not r.get("results"):

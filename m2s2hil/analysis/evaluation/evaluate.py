@@ -18,6 +18,10 @@ Per image (``evaluate_job``):
   processor's mask, also for a stored cube, which does not keep it). Segmenters that take it
   (``segmenters.masks``) get it, and label mTC shifts it with the cube; ``clipped_fraction`` in the
   per-image rows is the share of the image with a band clipped;
+- bracket (``EvalOptions.bracket``, on by default): a pose the sweep bracketed
+  (``Sweep.bracket``) is one image, its frames merged per band and pixel where each did not clip
+  (``loading.load_frame``, ``processing.bracket``) on its own frame's scale; ``bracket_frames`` in
+  the per-image rows counts them, ``bracket_error`` says why a pose's were not merged;
 - ground truth: the simulator's label map the engine stored with the frame
   (``extra`` role ``truth_labels``, sensor resolution), reduced to the cube's grid by the
   majority label of each n×n cell (``labels_to_cube``); images without it get mTC only;
@@ -164,7 +168,7 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
     }
     try:
         t0 = time.perf_counter()
-        frame = load_frame(job, options.reprocess, masks=options.clip_masks)
+        frame = load_frame(job, options.reprocess, masks=options.clip_masks, bracket=options.bracket)
         cube, saturated = frame.cube, frame.saturated
         gt = load_truth(job, cube.shape[1:])
         rec["load_s"] = time.perf_counter() - t0
@@ -176,6 +180,9 @@ def evaluate_job(job: FrameJob, options: EvalOptions) -> dict[str, Any]:
         return rec
     if frame.mask_error:
         rec["mask_error"] = frame.mask_error
+    rec["bracket_frames"] = frame.bracket_frames
+    if frame.bracket_error:
+        rec["bracket_error"] = frame.bracket_error
     rec["clipped_fraction"] = frame.clipped_fraction
     bands_nm = job.camera.get("bands_nm") or ()
     projected = None

@@ -17,6 +17,7 @@ from typing import Any, Literal
 from m2s2hil.catalog import load_catalog
 from m2s2hil.config import CameraModel
 from m2s2hil.errors import UsageError
+from m2s2hil.plan import bracket_base_id
 from m2s2hil.store.catalogue import default_data_root, list_sessions
 from m2s2hil.store.importer import find_hil_root, scan_published_layout
 from m2s2hil.store.layout import JOURNAL
@@ -35,6 +36,17 @@ class EvaluationError(UsageError):
 class FileRef:
     path: str
     sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class BracketFrame:
+    """One extra exposure of a job's pose (``Sweep.bracket``): its files and exposure × gain."""
+
+    event_id: str
+    cube: FileRef | None
+    raw: FileRef | None
+    dark: FileRef | None
+    exposure: float | None  # exposure_s × gain as taken
 
 
 @dataclass(frozen=True)
@@ -65,14 +77,19 @@ class FrameJob:
     # the factor that brings this image to its sweep's first exposure, for the sweep segmenters
     # (evaluation.sweeps; 1 when the sweep shares one exposure, as the plan's fixed exposures do)
     sweep_scale: float = 1.0
+    # the pose's extra exposures (a bracketed sweep): loading merges them into this image
+    bracket: tuple[BracketFrame, ...] = ()
 
 
 def _camera_json(model: CameraModel) -> dict[str, Any]:
     return model.model_dump(mode="json")
 
 
-def session_jobs(store: SessionStore) -> list[FrameJob]:
-    """One job per committed frame of an open ``SessionStore``."""
+def session_jobs(store: SessionStore, *, brackets: bool = True) -> list[FrameJob]:
+    """One job per image of an open ``SessionStore``: per committed frame, but a bracket's extra
+    exposures go with their pose's own frame (``FrameJob.bracket``) instead of making images of
+    their own (``brackets=False``: every frame its own job, as the session report shows them).
+    An extra exposure whose pose's own frame is missing is left out: it is not the pose's image."""
     cat = load_catalog()
     n_classes = len(cat.build(store.sweep.satellite, store.sweep.build).materials) + 1
     camera = _camera_json(store.rig.camera.model)
@@ -82,8 +99,22 @@ def session_jobs(store: SessionStore) -> list[FrameJob]:
     def ref(rec: Any) -> FileRef:
         return FileRef(str(base / rec.path), rec.sha256)
 
+    frames = store.frames()
+    members: dict[str, list[BracketFrame]] = {}
+    if brackets:
+        for fr in frames:
+            base_id = bracket_base_id(fr.event_id)
+            if base_id != fr.event_id:
+                dark = darks.get(fr.dark_id) if fr.dark_id else None
+                members.setdefault(base_id, []).append(BracketFrame(
+                    fr.event_id, ref(fr.files["cube"]) if "cube" in fr.files else None,
+                    ref(fr.files["raw"]) if "raw" in fr.files else None,
+                    ref(dark.files["master"]) if dark is not None else None,
+                    _exposure(fr.meta, fr.meta.get("event", {}))))
     jobs = []
-    for fr in store.frames():
+    for fr in frames:
+        if brackets and bracket_base_id(fr.event_id) != fr.event_id:
+            continue
         ev = fr.meta.get("event", {})
         files = fr.files
         dark = darks.get(fr.dark_id) if fr.dark_id else None
@@ -110,6 +141,7 @@ def session_jobs(store: SessionStore) -> list[FrameJob]:
                 preview=ref(files["preview"]) if "preview" in files else None,
                 projected=ref(files[PROJECTED_ROLE]) if PROJECTED_ROLE in files else None,
                 exposure=_exposure(fr.meta, ev),
+                bracket=tuple(members.get(fr.event_id, ())),
             )
         )
     return jobs

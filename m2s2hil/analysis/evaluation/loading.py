@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +22,8 @@ import numpy as np
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.evaluation.jobs import EvaluationError, FileRef, FrameJob
 from m2s2hil.config import CameraModel
+from m2s2hil.processing.bracket import merge_bracket
+from m2s2hil.processing.errors import BracketError
 from m2s2hil.processing.mosaic import MosaicLayout
 from m2s2hil.processing.stability import band_saturation
 from m2s2hil.store.cubes import master_dark_from
@@ -123,6 +125,8 @@ class LoadedFrame:
     # processor's ``saturated_mask``
     saturated: np.ndarray | None
     mask_error: str | None = None  # why a stored cube's mask could not be rebuilt (the cube still counts)
+    bracket_frames: int = 1  # frames merged into the cube (a bracketed pose: processing.bracket)
+    bracket_error: str | None = None  # why a pose's bracket was not merged (its own frame is used)
 
     @property
     def saturated_pixels(self) -> np.ndarray | None:
@@ -156,10 +160,49 @@ def stored_saturation(job: FrameJob, shape: tuple[int, int]) -> np.ndarray | Non
     return mask
 
 
-def load_frame(job: FrameJob, reprocess: str | None = None, *, masks: bool = True) -> LoadedFrame:
+def load_frame(job: FrameJob, reprocess: str | None = None, *, masks: bool = True,
+               bracket: bool = True) -> LoadedFrame:
     """The image's float32 cube (bands, H, W), stored or processed from the raw, and (``masks``)
     its clipping mask: the processor's when the raw is processed here, else rebuilt from the raw
-    (a raw frame that cannot be read leaves the mask out, with the reason, not the image)."""
+    (a raw frame that cannot be read leaves the mask out, with the reason, not the image).
+
+    A bracketed pose (``job.bracket``) is merged with its extra exposures (``bracket``:
+    :func:`processing.bracket.merge_bracket`, each frame with its own dark and clipping mask),
+    on this frame's scale. Merging needs every frame's mask and exposure; without them the pose's
+    own frame is used and ``bracket_error`` says why."""
+    if not (bracket and job.bracket):
+        return _load_one(job, reprocess, masks=masks)
+    own = _load_one(job, reprocess, masks=True)
+    try:
+        merged = merge_pose(job, own, reprocess)
+    except (EvaluationError, BracketError, AnalysisInputError, OSError, ValueError) as exc:
+        kept = own if masks else replace(own, saturated=None)
+        return replace(kept, bracket_error=f"{type(exc).__name__}: {exc}")
+    return merged if masks else replace(merged, saturated=None)
+
+
+def merge_pose(job: FrameJob, own: LoadedFrame, reprocess: str | None = None) -> LoadedFrame:
+    """``own`` (the job's frame, loaded with its mask) merged with the job's bracket frames."""
+    frames = [own]
+    for member in job.bracket:
+        part = replace(job, image_id=f"{job.image_id} ({member.event_id})", cube=member.cube, raw=member.raw,
+                       dark=member.dark, exposure=member.exposure, bracket=())
+        frames.append(_load_one(part, reprocess, masks=True))
+    scales = [job.exposure, *(m.exposure for m in job.bracket)]
+    names = [job.image_id, *(m.event_id for m in job.bracket)]
+    for f, scale, name in zip(frames, scales, names, strict=True):
+        if f.saturated is None:
+            raise EvaluationError(f"{name}: no clipping mask ({f.mask_error or 'no raw frame'}), so its "
+                                  "clipped bands cannot be left out of the merge")
+        if scale is None:
+            raise EvaluationError(f"{name}: no exposure recorded")
+    out = merge_bracket([f.cube for f in frames], [float(s) for s in scales if s is not None],
+                        [f.saturated for f in frames if f.saturated is not None])
+    return LoadedFrame(out.cube, out.clipped, bracket_frames=len(frames))
+
+
+def _load_one(job: FrameJob, reprocess: str | None = None, *, masks: bool = True) -> LoadedFrame:
+    """One frame's cube and (``masks``) clipping mask (:func:`load_frame` without the bracket)."""
     if job.cube is not None and reprocess is None:
         cube, _ = decode_tiff(_read(job.cube))
         arr = np.asarray(cube, dtype=np.float32)

@@ -52,6 +52,7 @@ class EvalOptions:
     rho: float = 0.9
     mtc_bands: tuple[int, ...] = PAPER_BANDS  # 1-based bands of the binary mTC predictor
     clip_masks: bool = True  # give segmenters each frame's clipping mask (segmenters.masks)
+    bracket: bool = True  # merge a bracketed pose's exposures into its image (loading.load_frame)
 
     def __post_init__(self) -> None:
         if self.mtc_for not in ("multi", "all", "none"):

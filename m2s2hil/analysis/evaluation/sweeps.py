@@ -57,7 +57,8 @@ def fit_sweep(group: tuple[str, list[FrameJob]], options: EvalOptions) -> Any:
         def cubes() -> Iterator[np.ndarray]:
             for job in jobs:
                 try:
-                    frame = load_frame(job, options.reprocess, masks=options.clip_masks)
+                    frame = load_frame(job, options.reprocess, masks=options.clip_masks,
+                                       bracket=options.bracket)
                 except Exception as exc:  # reported by the image's own job
                     log.warning("sweep fit of %s: %s left out: %s", name, job.image_id, exc)
                     continue

@@ -76,6 +76,7 @@ class FrameView:
     flags: list[str]
     computed: bool = False
     thumbnail: bytes | None = field(default=None, repr=False)  # JPEG
+    exposure_factor: float = 1.0  # a bracket's extra exposure of its pose (not QC-checked)
 
 
 def preview_rgb(
@@ -114,7 +115,7 @@ def collect_views(
     if store.kind == "synthetic":
         return [], {"kind": "synthetic", "scored": 0, "thumb_px": thumb_px}
     cfg = config or QcConfig()
-    jobs = {j.image_id.split("/", 1)[1]: j for j in session_jobs(store)}
+    jobs = {j.image_id.split("/", 1)[1]: j for j in session_jobs(store, brackets=False)}
     bands = store.rig.camera.model.bands_nm
     views = []
     for fr in store.frames():
@@ -122,7 +123,8 @@ def collect_views(
         score, flags = qc_of_meta(fr.meta)
         computed = False
         cube = None
-        if score is None and compute_missing:
+        factor = float(ev.get("exposure_factor", 1.0) or 1.0)
+        if score is None and compute_missing and factor == 1.0:  # a bracket member is not checked
             score, flags, cube = _compute_qc(jobs[fr.event_id], cfg)
             computed = True
         thumb = None
@@ -143,6 +145,7 @@ def collect_views(
                 flags,
                 computed,
                 thumb,
+                factor,
             )
         )
 
@@ -152,7 +155,8 @@ def collect_views(
         meta: dict
 
     summary = qc_summary(
-        [_Rec(v.event_id, {"qc": {"score": v.score, "flags": v.flags}}) for v in views],
+        [_Rec(v.event_id, {"qc": {"score": v.score, "flags": v.flags}}) for v in views
+         if v.exposure_factor == 1.0],
         threshold=_stored_threshold(store) or cfg.threshold,
     )
     summary["computed_at_report"] = sum(v.computed for v in views)
@@ -287,7 +291,7 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
     out.append(coverage_section(store, {v.event_id: (v.score, v.flags) for v in views}))
     out.append("<details><summary>QC per pose (table)</summary>")
     for lt in lights:
-        vs = [v for v in views if v.lighting == lt]
+        vs = [v for v in views if v.lighting == lt and v.exposure_factor == 1.0]  # a pose: its own frame
         azs = sorted({v.azimuth_deg for v in vs if v.azimuth_deg is not None})
         name = cat.lighting[lt].name if lt in cat.lighting else lt
         out.append(f"<h3>{_esc(name)}</h3><table><tr><th>elev \\ az</th>")
@@ -329,7 +333,8 @@ def render(store: SessionStore, views: Sequence[FrameView], summary: Mapping[str
                     else ""
                 )
                 az = "?" if v.azimuth_deg is None else f"{v.azimuth_deg:g}°"
-                extra = f" f{v.frame}" if v.frame else ""
+                extra = (f" f{v.frame}" if v.frame else "") + (
+                    f" ×{v.exposure_factor:g}" if v.exposure_factor != 1.0 else "")
                 flags = f"<br><span class=flags>{_esc(', '.join(v.flags))}</span>" if v.flags else ""
                 star = "†" if v.computed else ""
                 out.append(

@@ -45,10 +45,12 @@ def simulate_session(
     session_id: str | None = None,
     dark_frames: int = 2,
     store_cubes: bool = False,
+    bracket: Mapping[str, Sequence[float]] | None = None,
 ) -> Path:
     """Capture a session on the simulated rig with the real engine (truth labels stored with
     every frame); ``size`` is the sensor width = height; ``qc``: True (default hook), a
-    hook, or None; ``store_cubes``: cache each cube beside its raw frame (``storage.cubes``).
+    hook, or None; ``store_cubes``: cache each cube beside its raw frame (``storage.cubes``);
+    ``bracket``: the sweep's exposure brackets (``Sweep.bracket``).
     Returns the session folder."""
     data = default_rig().model_dump(mode="json")
     data["camera"]["model"].update(width=int(size), height=int(size))
@@ -64,6 +66,8 @@ def simulate_session(
     }
     if exposure:
         sweep_data["exposure"] = dict(exposure)
+    if bracket:
+        sweep_data["bracket"] = {k: list(v) for k, v in bracket.items()}
     sweep = Sweep.model_validate(sweep_data)
     hook = capture_qc_hook() if qc is True else (qc or None)
     rig = open_simulated_rig(cfg, seed=seed)
