@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from m2s2hil.analysis.errors import AnalysisInputError
-from m2s2hil.analysis.metrics.bounds import pixel_bounds, pixel_features
+from m2s2hil.analysis.metrics.bounds import frame_features, held_out_dice, pixel_bounds, pixel_features
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
 
 
@@ -72,3 +72,48 @@ def test_a_class_smaller_than_the_feature_count_is_handled():
     gt[8:10, 8:11] = 3  # six pixels, eleven features: a singular covariance without shrinkage
     bounds = pixel_bounds(cube, gt)
     assert 0.5 < bounds.qda <= 1.0 and 0.5 < bounds.centroid <= 1.0
+
+
+def shaded_views(n: int, *, odd: int | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """``n`` views of the two-material square, each lit from another side (brightness falls 8-fold
+    across the object, as under one lamp); in view ``odd`` the second material looks unlike it does
+    in the others (a spectrum near the first's)."""
+    cubes, gts = [], []
+    for i in range(n):
+        cube, gt = two_materials(2.0, seed=i)
+        if i == odd:
+            a = np.linspace(1.0, 2.0, 10)
+            cube[:, gt == 2] = 100.0 * (a * np.linspace(0.9, 1.1, 10))[:, None] + cube[:, gt == 2] % 1
+        ramp = np.geomspace(1 / 8, 1.0, 48)
+        shade = ramp[None, None, :] if i % 2 else ramp[None, :, None]
+        cubes.append(np.clip(cube * shade, 0, None))
+        gts.append(gt)
+    return cubes, gts
+
+
+def test_held_out_views_are_labelled_from_the_others():
+    cubes, gts = shaded_views(4)
+    for features in ("segmenter", "pixel", "context"):
+        for model in ("qda", "boosting"):
+            dice = held_out_dice(cubes, gts, features=features, model=model)  # type: ignore[arg-type]
+            assert len(dice) == 4 and min(dice) > 0.95, (features, model, dice)
+
+
+def test_a_view_unlike_the_others_fails_held_out_though_it_fits_in_sample():
+    cubes, gts = shaded_views(4, odd=2)
+    dice = held_out_dice(cubes, gts, model="qda", features="pixel")
+    assert dice[2] < 0.7 and min(dice[:2] + dice[3:]) > 0.95  # the others taught it the wrong look
+    assert pixel_bounds(cubes[2], gts[2]).qda > 0.95  # fitted on itself it is easy
+
+
+def test_frame_features_and_bad_views_are_typed():
+    cube, gt = two_materials(1.0)
+    assert [frame_features(cube, k).shape[0] for k in ("segmenter", "pixel", "context")] == [11, 20, 40]
+    with pytest.raises(AnalysisInputError, match="features"):
+        frame_features(cube, "colour")  # type: ignore[arg-type]
+    with pytest.raises(AnalysisInputError, match="two or more"):
+        held_out_dice([cube], [gt])
+    with pytest.raises(AnalysisInputError, match="views\\[1\\]"):
+        held_out_dice([cube, cube], [gt, gt[:10]])
+    with pytest.raises(AnalysisInputError, match="model"):
+        held_out_dice([cube, cube], [gt, gt], model="svm")  # type: ignore[arg-type]

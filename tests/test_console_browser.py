@@ -196,6 +196,38 @@ def test_console_end_to_end(served, new_page) -> None:
     assert not errors, errors
 
 
+def test_a_spotlight_bracket_from_the_form(served, new_page) -> None:
+    """The form's spotlight bracket: the estimate counts its frames, a bad factor gets the daemon's
+    own message, and a session started with it holds each pose at both exposures."""
+    d, base = served
+    page = new_page(viewport={"width": 1400, "height": 1000}, bypass_csp=True)
+    page.goto(base + "/")
+    page.click("#tabs button[data-view='sessions']")
+    page.wait_for_function("document.querySelectorAll('#f-light input').length === 3")
+    for box in page.query_selector_all("#f-light input"):
+        if (box.get_attribute("value") == "directional") != box.is_checked():
+            box.click()
+    page.fill("#f-bracket", "1")
+    page.dispatch_event("#f-bracket", "change")
+    page.wait_for_function("document.getElementById('estimate').className.includes('bad')")
+    assert "factor 1 is the pose's own frame" in page.inner_text("#estimate")
+    page.fill("#f-bracket", "16")
+    page.dispatch_event("#f-bracket", "change")
+    page.wait_for_function("!document.getElementById('estimate').className.includes('bad')")
+    shot(page, "console_bracket.png")
+    # two poses (E1, 180° apart), each with its 16 x exposure; two master darks
+    start_session_from_form(page, tilts=("E1",), step_deg=180, frames=4)
+    page.wait_for_function("document.getElementById('run-state').textContent === 'completed'", timeout=60000)
+    sid = page.inner_text("#run-id")
+    st = d.client.get(f"/sessions/{sid}").json()
+    assert st["done"] == st["total"] == 6  # 4 frames and 2 darks
+    ids = sorted(f["event_id"] for f in d.client.get(f"/sessions/{sid}/frames").json()["items"])
+    assert ids == ["directional/E1/az000/f0", "directional/E1/az000/f0/x16",
+                   "directional/E1/az180/f0", "directional/E1/az180/f0/x16"]
+    page.fill("#f-bracket", "")  # the form as the other tests expect it
+    page.dispatch_event("#f-bracket", "change")
+
+
 def test_console_asks_for_the_token_and_uses_it(served, new_page) -> None:
     d = served[0]  # the module's rig and manager, behind an app of its own that wants the token
     with uvicorn_thread(create_app(d.manager, token=TOKEN)) as base:

@@ -365,8 +365,12 @@ async function download(path, name) {
 // ------------------------------------------------------------------ sessions: form + estimate
 function sweepFromForm() {
   const checked = (id) => [...document.querySelectorAll(`#${id} input:checked`)].map((c) => c.value);
-  return { satellite: $("f-sat").value, build: $("f-build").value, lighting: checked("f-light"),
+  const sweep = { satellite: $("f-sat").value, build: $("f-build").value, lighting: checked("f-light"),
     tilts: checked("f-tilts"), azimuth_step_deg: Number($("f-step").value), mode: $("f-mode").value };
+  // the spotlight's bracket (Sweep.bracket): sent as typed, so the daemon's 422 names a bad factor
+  const bracket = $("f-bracket").value.trim();
+  if (bracket !== "" && sweep.lighting.includes("directional")) sweep.bracket = { directional: [Number(bracket)] };
+  return sweep;
 }
 
 function buildForm(cat) {

@@ -46,15 +46,19 @@ def simulate_session(
     dark_frames: int = 2,
     store_cubes: bool = False,
     bracket: Mapping[str, Sequence[float]] | None = None,
+    spot_angle_deg: float | None = None,
 ) -> Path:
     """Capture a session on the simulated rig with the real engine (truth labels stored with
     every frame); ``size`` is the sensor width = height; ``qc``: True (default hook), a
     hook, or None; ``store_cubes``: cache each cube beside its raw frame (``storage.cubes``);
-    ``bracket``: the sweep's exposure brackets (``Sweep.bracket``).
+    ``bracket``: the sweep's exposure brackets (``Sweep.bracket``); ``spot_angle_deg``: the
+    simulated spotlight's incidence (the rig's ``[simulation]``, 45° by default).
     Returns the session folder."""
     data = default_rig().model_dump(mode="json")
     data["camera"]["model"].update(width=int(size), height=int(size))
     data.setdefault("storage", {})["cubes"] = bool(store_cubes)
+    if spot_angle_deg is not None:
+        data.setdefault("simulation", {})["spot_angle_deg"] = float(spot_angle_deg)
     cfg = parse_rig(data, f"simulated rig ({size}x{size})")
     sweep_data: dict[str, Any] = {
         "satellite": satellite,
