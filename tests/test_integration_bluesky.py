@@ -121,3 +121,29 @@ def test_axis_refuses_a_target_beyond_its_limits(bench):
     assert abs(rig.tilt.position() - 5.0) <= rig.config.axes["tilt"].tolerance_deg
     RE(bps.mv(d.lamps, "directional"))
     assert rig.world.lamps_on() == d.lamps.presets["directional"]
+
+
+@pytest.mark.timeout(180)
+def test_a_bracketed_sweep_as_a_bluesky_plan_takes_every_exposure_with_its_dark(tmp_path):
+    cfg = small_rig_config(64)
+    sweep = small_sweep(lighting=["directional"], azimuth_step_deg=180, bracket={"directional": [16.0]})
+    rig = open_simulated_rig(cfg)
+    store = SessionStore.create(tmp_path / "bs", sweep, cfg, session_id="bs", clock=rig.clock)
+    try:
+        devs = rig_devices(rig, store)
+        RE = RunEngine({}, call_returns_result=True)
+        RE(ensure_connected(devs.turntable, devs.tilt, devs.lamps, devs.camera))
+        RE(m2s2_sweep("voyager", "B3", "directional", turntable=devs.turntable, tilt=devs.tilt,
+                      lamps=devs.lamps, camera=devs.camera, sweep=sweep))
+        assert_rig_safe(rig)
+        frames = {fr.event_id: fr for fr in store.frames()}
+        assert sorted(frames) == ["directional/E1/az000/f0", "directional/E1/az000/f0/x16",
+                                  "directional/E1/az180/f0", "directional/E1/az180/f0/x16"]
+        darks = {dk.dark_id: dk.exposure_s for dk in store.darks()}
+        for eid, fr in frames.items():
+            assert fr.meta["exposure_s"] == pytest.approx(0.048 if eid.endswith("x16") else 0.003)
+            assert darks[fr.meta["dark_id"]] == pytest.approx(fr.meta["exposure_s"])
+            assert np.array_equal(store.read_cube(eid), _expected_cube(store, eid))
+    finally:
+        store.close()
+        rig.close()
