@@ -35,6 +35,14 @@ OUT = ROOT / "docs" / "images"
 GOAL = -0.05
 DEFAULT_CELLS = ("peak-60%", "spot-0°", "spot-45°", "spot-80°", "spot-0°-x16", "spot-45°-x16", "spot-80°-x16")
 DEFAULT_REFS = ("qda:segmenter", "boosting:segmenter", "boosting:pixel", "boosting:context")
+LABELS = {
+    "segmenter": "the segmenter (unsupervised)",
+    "qda-in": "Gaussian a material, fitted on the frame",
+    "qda:segmenter": "Gaussian a material, held out",
+    "boosting:segmenter": "trees, held out",
+    "boosting:pixel": "trees + every band's log, held out",
+    "boosting:context": "trees + logs + neighbours, held out",
+}
 
 
 def render(cell: str, azimuths: list[float], size: int, seed: int) -> dict[str, list[Any]]:
@@ -153,7 +161,7 @@ def chart(summary: list[dict[str, Any]], keys: list[str], path: Path, title: str
     import matplotlib.pyplot as plt
 
     shown = [s for s in summary if s["cell"] != REFERENCE]
-    fig, ax = plt.subplots(figsize=(10, 4.8))
+    fig, ax = plt.subplots(figsize=(10, 5.6))
     width = 0.8 / len(keys)
     colours = plt.get_cmap("tab10")
     for j, k in enumerate(keys):
@@ -165,7 +173,7 @@ def chart(summary: list[dict[str, Any]], keys: list[str], path: Path, title: str
             x,
             d,
             width,
-            label=k,
+            label=LABELS.get(k, k),
             color="#444444" if k == "segmenter" else colours(j),
             yerr=np.vstack([d - lo, hi - d]),
             capsize=2,
@@ -176,10 +184,17 @@ def chart(summary: list[dict[str, Any]], keys: list[str], path: Path, title: str
     ax.set_xticks(range(len(shown)), [s["cell"] for s in shown], fontsize=9)
     ax.set_ylabel("ΔDice vs its own 60 % peak cell\n(paired by pose, 95 % t interval)", fontsize=9)
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=8, ncol=3, loc="lower left")
+    ax.legend(fontsize=8, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.1))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def title(views: int, seed: int) -> str:
+    return (
+        f"Told the materials by the build's other views ({views} views a build, seed {seed}), "
+        "against the segmenter"
+    )
 
 
 def main() -> None:
@@ -194,7 +209,18 @@ def main() -> None:
     ap.add_argument("--segmenter-json", type=Path, default=OUT / "robustness_wide_sweep_bracket.json")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--name", default="held_out_reference")
+    ap.add_argument("--replot", action="store_true", help="draw the chart again from the run's JSON")
     args = ap.parse_args()
+    if args.replot:
+        data = json.loads((args.out / f"{args.name}.json").read_text())
+        keys = ["segmenter", "qda-in", *data["meta"]["refs"]]
+        chart(
+            data["summary"],
+            keys,
+            args.out / f"{args.name}.png",
+            title(len(data["meta"]["azimuths"]), args.seed),
+        )
+        return
     if REFERENCE not in args.cells:
         args.cells.insert(0, REFERENCE)
     azimuths = [float(a) for a in np.arange(0.0, 360.0, args.step)]
@@ -224,13 +250,7 @@ def main() -> None:
         )
     table = markdown(summary, keys)
     print(table)
-    chart(
-        summary,
-        keys,
-        args.out / f"{args.name}.png",
-        f"Held out: told the materials by the build's other views ({len(azimuths)} views a build, seed "
-        f"{args.seed}); segmenter = spectral-sweep as run",
-    )
+    chart(summary, keys, args.out / f"{args.name}.png", title(len(azimuths), args.seed))
 
 
 if __name__ == "__main__":
