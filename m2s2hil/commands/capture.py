@@ -90,7 +90,10 @@ def parse_bracket(values: list[str], lights: list[str]) -> dict[str, list[float]
         if not numbers:
             raise UsageError(f"--bracket {v!r}: no factor given, e.g. 16 or dir=4,16")
         for k in keys:
-            out.setdefault(k, []).extend(f for f in numbers if f not in out.get(k, []))
+            listed = out.setdefault(k, [])
+            for f in numbers:
+                if f not in listed:  # 16 given twice is one exposure
+                    listed.append(f)
     return out
 
 

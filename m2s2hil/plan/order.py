@@ -106,13 +106,13 @@ def _build_steps(sweep: Sweep, rig: RigConfig, order: Sequence[str], lights: Seq
     commanded = commanded_azimuths(nominal, rig)
     values = {"light": list(lights), "tilt": list(tilts), "azimuth": list(range(len(nominal)))}
     out: list[_Step] = []
-    # (condition, factor) -> exposure: the pose's own (factor 1) and its bracket's
-    exp_of = {(c, f): t for c in lights for f, t in sweep.pose_exposures(c).items()}
+    # condition -> (factor, exposure, dark id) of each frame of a pose: its own, then its bracket's
+    shots = {c: [(f, t, dark_event_id(t, sweep.gain) if sweep.dark.frames > 0 else None)
+                 for f, t in sweep.pose_exposures(c).items()] for c in lights}
     if sweep.dark.frames > 0:
-        for e in sorted(set(exp_of.values())):
+        for e in sorted({t for per in shots.values() for _, t, _ in per}):
             out.append(_Step("dark", None, None, None, None, None, None, 0, sweep.dark.frames, e, None,
                              None, 0))
-    dark_of = {k: dark_event_id(e, sweep.gain) if sweep.dark.frames > 0 else None for k, e in exp_of.items()}
     # Nested loops with a snake: a loop runs backwards every other time it restarts.
     n_mid = 0
     pass_index = -1
@@ -128,10 +128,9 @@ def _build_steps(sweep: Sweep, rig: RigConfig, order: Sequence[str], lights: Seq
                     pass_index += 1
                     last_pass_key = key
                 for k in range(sweep.frames_per_pose):
-                    for f in sweep.exposure_factors(cond):
+                    for f, exp, did in shots[cond]:
                         out.append(_Step("frame", cond, elev, rig.elevations[elev], commanded[ai],
-                                         nominal[ai], ai, k, 1, exp_of[cond, f], dark_of[cond, f],
-                                         sweep.settle_s, pass_index, f))
+                                         nominal[ai], ai, k, 1, exp, did, sweep.settle_s, pass_index, f))
     return out
 
 

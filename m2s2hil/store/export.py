@@ -215,7 +215,7 @@ def write_pairs(out: Path) -> Path | None:
                 key = (r["satellite"], r["build"], r["elevation"], az)
             except (KeyError, ValueError):
                 continue
-            if r.get("domain") != "synthetic" and r.get("exposure_factor", "1") not in ("", "1", "1.0"):
+            if r.get("domain") != "synthetic" and float(r.get("exposure_factor") or 1.0) != 1.0:
                 continue  # a bracket's extra exposure pairs through its pose's own frame
             (syn if r.get("domain") == "synthetic" else hil).setdefault(key, []).append(r)
     if not syn:
@@ -346,12 +346,12 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
             raise ExportError(str(exc)) from None
         result.images = len(frames)
     else:
-        targets: list[tuple[Path, Path]] = []
+        targets: list[tuple[Path | None, Path]] = []  # (8-bit, 16-bit PNG); a bracket member: 16-bit only
         labels: list[tuple[FrameRecord, str, Path]] = []  # (frame, role, target): masks, projected labels
         for fr, r in zip(frames, rows, strict=True):
             sub = Path(sat_name) / b / f"e{int(r['elevation'][1:])}" / rel_name(r)
             if r["exposure_factor"] != 1.0:  # a bracket member: 16-bit only, beside the release's folders
-                targets.append((out / "HILbracket" / sub, out / "HILbracket" / sub))
+                targets.append((None, out / "HILbracket" / sub))
                 r["file"] = r["file16"] = f"HILbracket/{sub.as_posix()}"
             else:
                 targets.append((out / "HIL" / sub, out / "HIL16" / sub))
@@ -362,11 +362,12 @@ def export_session(store: SessionStore, out: str | Path, layout: str = "m2s2", *
                     labels.append((fr, role, out / folder / sub))
                     r[col] = f"{folder}/{sub.as_posix()}"
         meta_csv = out / "metadata" / f"{store.session_id}.csv"
-        _refuse_clash([p for t in targets for p in set(t)] + [t for _, _, t in labels] + [meta_csv, meta_json]
-                      + [t for _, t in darks], overwrite)
+        planned = [p for t in targets for p in t if p is not None]
+        _refuse_clash(planned + [t for _, _, t in labels] + [meta_csv, meta_json] + [t for _, t in darks],
+                      overwrite)
         for fr, (p8, p16) in zip(frames, targets, strict=True):
             raw, _ = store.read_raw(fr.event_id)
-            if p8 != p16:
+            if p8 is not None:
                 write_bytes_atomic(p8, encode_png(mosaic_png8(raw, bits)))
                 result.files.append(p8)
             write_bytes_atomic(p16, encode_png(raw.astype(np.uint16)))

@@ -99,22 +99,20 @@ def session_jobs(store: SessionStore, *, brackets: bool = True) -> list[FrameJob
     def ref(rec: Any) -> FileRef:
         return FileRef(str(base / rec.path), rec.sha256)
 
-    frames = store.frames()
-    members: dict[str, list[BracketFrame]] = {}
-    if brackets:
-        for fr in frames:
-            base_id = bracket_base_id(fr.event_id)
-            if base_id != fr.event_id:
-                dark = darks.get(fr.dark_id) if fr.dark_id else None
-                members.setdefault(base_id, []).append(BracketFrame(
-                    fr.event_id, ref(fr.files["cube"]) if "cube" in fr.files else None,
-                    ref(fr.files["raw"]) if "raw" in fr.files else None,
-                    ref(dark.files["master"]) if dark is not None else None,
-                    _exposure(fr.meta, fr.meta.get("event", {}))))
-    jobs = []
-    for fr in frames:
-        if brackets and bracket_base_id(fr.event_id) != fr.event_id:
+    own_frames, members = [], {}
+    for fr in store.frames():
+        base_id = bracket_base_id(fr.event_id) if brackets else fr.event_id
+        if base_id == fr.event_id:
+            own_frames.append(fr)
             continue
+        dark = darks.get(fr.dark_id) if fr.dark_id else None
+        members.setdefault(base_id, []).append(BracketFrame(
+            fr.event_id, ref(fr.files["cube"]) if "cube" in fr.files else None,
+            ref(fr.files["raw"]) if "raw" in fr.files else None,
+            ref(dark.files["master"]) if dark is not None else None,
+            _exposure(fr.meta, fr.meta.get("event", {}))))
+    jobs = []
+    for fr in own_frames:
         ev = fr.meta.get("event", {})
         files = fr.files
         dark = darks.get(fr.dark_id) if fr.dark_id else None

@@ -188,16 +188,17 @@ def merge_pose(job: FrameJob, own: LoadedFrame, reprocess: str | None = None) ->
         part = replace(job, image_id=f"{job.image_id} ({member.event_id})", cube=member.cube, raw=member.raw,
                        dark=member.dark, exposure=member.exposure, bracket=())
         frames.append(_load_one(part, reprocess, masks=True))
-    scales = [job.exposure, *(m.exposure for m in job.bracket)]
     names = [job.image_id, *(m.event_id for m in job.bracket)]
-    for f, scale, name in zip(frames, scales, names, strict=True):
+    scales, masks = [], []
+    for f, scale, name in zip(frames, [job.exposure, *(m.exposure for m in job.bracket)], names, strict=True):
         if f.saturated is None:
             raise EvaluationError(f"{name}: no clipping mask ({f.mask_error or 'no raw frame'}), so its "
                                   "clipped bands cannot be left out of the merge")
         if scale is None:
             raise EvaluationError(f"{name}: no exposure recorded")
-    out = merge_bracket([f.cube for f in frames], [float(s) for s in scales if s is not None],
-                        [f.saturated for f in frames if f.saturated is not None])
+        scales.append(scale)
+        masks.append(f.saturated)
+    out = merge_bracket([f.cube for f in frames], scales, masks)
     return LoadedFrame(out.cube, out.clipped, bracket_frames=len(frames))
 
 
