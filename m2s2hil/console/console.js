@@ -401,14 +401,18 @@ function msOf(s) { return Number((s * 1000).toPrecision(6)); }
 function fmtMs(s) { return s == null || !isFinite(s) ? "–" : `${Number((s * 1000).toPrecision(4))} ms`; }
 function fmtS(s) { if (!isFinite(s)) return "–"; const m = Math.floor(s / 60); return m ? `${m} min ${Math.round(s % 60)} s` : `${s.toFixed(1)} s`; }
 
+let estimateSeq = 0;
 async function estimate() {
   const box = $("estimate");
+  // answers can arrive out of order as the form changes: only the latest request's is shown
+  const mine = ++estimateSeq;
   try {
     const r = await api("POST", "/plans/estimate", sweepFromForm());
+    if (mine !== estimateSeq) return;
     const size = r.bytes >= 1e9 ? (r.bytes / 1e9).toFixed(2) + " GB" : (r.bytes / 1e6).toFixed(0) + " MB";
     box.textContent = `${r.frames + r.darks} captures: ${r.frames} frames + ${r.darks} dark${r.darks === 1 ? "" : "s"} · estimate ${fmtS(r.estimate_s)} (lower bound ${fmtS(r.lower_bound_s)}) · ${size}`;
     box.className = "estimate";
-  } catch (e) { box.textContent = e.message; box.className = "estimate bad"; }
+  } catch (e) { if (mine === estimateSeq) { box.textContent = e.message; box.className = "estimate bad"; } }
 }
 
 $("session-form").addEventListener("submit", async (ev) => {
@@ -465,7 +469,8 @@ async function fillSheet(id, box, key) {
     const qc = (f.meta && f.meta.qc) || {};
     if (qc.flags && qc.flags.length) fig.classList.add("flagged");
     const ev = (f.meta && f.meta.event) || {};
-    const caption = `${ev.lighting ?? ""} ${ev.elevation ?? ""} ${ev.azimuth_deg ?? "?"}°` +
+    const bracket = ev.exposure_factor != null && ev.exposure_factor !== 1 ? ` ×${ev.exposure_factor} (bracket, not QC-checked)` : "";
+    const caption = `${ev.lighting ?? ""} ${ev.elevation ?? ""} ${ev.azimuth_deg ?? "?"}°${bracket}` +
       (qc.score != null ? ` · QC ${qc.score.toFixed(2)}` : "") + (qc.flags && qc.flags.length ? " ⚑ " + qc.flags.join(", ") : "");
     fig.append(img, el("figcaption", caption));
     box.append(fig);
