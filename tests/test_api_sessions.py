@@ -230,3 +230,18 @@ def test_sessions_beyond_the_kept_ones_have_their_journals_closed(tmp_path) -> N
         assert jobs[0].store.journal._db is None  # dropped: its journal closed
         assert jobs[-1].store.journal._db is not None  # kept: still open for reads
         assert dm.client.get(f"/sessions/{sids[0]}").json()["state"] == "completed"  # read from disk
+
+
+def test_a_session_retired_during_a_read_stays_open_until_the_read_ends(tmp_path) -> None:
+    # Retiring closed the store under a request that was reading it.
+    with daemon(tmp_path / "data", keep_finished=1, rig_config=small_rig_config(64)) as dm:
+        first = dm.client.post("/sessions", json=sweep()).json()["session_id"]
+        assert dm.wait_done(first)["state"] == "completed"
+        with dm.manager.reads.reading(first) as store:
+            second = dm.client.post("/sessions", json=sweep()).json()["session_id"]
+            assert dm.wait_done(second)["state"] == "completed"
+            assert dm.manager._queue.get(first) is None  # retired meanwhile
+            assert store.journal.query("SELECT COUNT(*) AS n FROM frames")[0]["n"] > 0
+        assert store.journal._db is None  # closed once the read ended
+        with dm.manager.reads.reading(first) as again:  # later reads open it from disk
+            assert again is not store and again.state == "completed"

@@ -424,3 +424,28 @@ def test_a_stored_dark_is_rebuilt_with_its_provenance_by_the_store_and_the_analy
     assert (loaded.read_noise_dn, loaded.camera_serial, loaded.reduce) == (master.read_noise_dn,
                                                                           "TOUCAN-SN-42", "median")
     assert loaded.provenance() == rebuilt.provenance() == master.provenance()
+
+
+def test_a_reader_holding_the_journal_keeps_reading_when_the_owner_lets_go(store):
+    # CI caught it: the console read a frame while the daemon gave the finished session's owner
+    # lock back, and the journal object the read held had been swapped out and closed.
+    held = store.journal
+    before = held.query("SELECT COUNT(*) AS n FROM frames")[0]["n"]
+    store.release_ownership()
+    assert store.journal is held and held.read_only
+    assert held.query("SELECT COUNT(*) AS n FROM frames")[0]["n"] == before
+    # read-only now: the owner lock is gone
+    with pytest.raises(sqlite3.OperationalError), held.transaction() as db:
+        db.execute("DELETE FROM frames")
+
+
+def test_a_closed_journal_says_so(store):
+    from m2s2hil.store.journal import JournalClosed, JournalError
+
+    store.close()
+    with pytest.raises(JournalClosed, match="journal closed") as exc:
+        store.journal.query("SELECT 1")
+    assert isinstance(exc.value, JournalError)
+    with pytest.raises(JournalClosed), store.journal.transaction():
+        pass
+    store.close()  # twice is harmless

@@ -474,9 +474,19 @@ async function fillSheet(id, box, key) {
       (qc.score != null ? ` · QC ${qc.score.toFixed(2)}` : "") + (qc.flags && qc.flags.length ? " ⚑ " + qc.flags.join(", ") : "");
     fig.append(img, el("figcaption", caption));
     box.append(fig);
-    if (f.preview_url) blobUrl(f.preview_url).then((u) => { img.src = u; }).catch(() => {});
+    if (f.preview_url) loadThumb(img, fig, f.preview_url);
   }
   state[key] += r.items.length;
+}
+
+// A thumbnail whose fetch fails (a daemon busy or restarting) is tried again a few times, then
+// says so in its figure rather than staying blank.
+function loadThumb(img, fig, url, tries = 0) {
+  blobUrl(url).then((u) => { img.src = u; fig.classList.remove("missing"); }).catch((e) => {
+    if (tries < 3) { setTimeout(() => loadThumb(img, fig, url, tries + 1), 500 * 2 ** tries); return; }
+    fig.classList.add("missing");
+    img.title = "preview not available: " + (e && e.message ? e.message : "the request failed");
+  });
 }
 
 // A real rig's darks: the session waits for the operator's word on the lens cap (the pause

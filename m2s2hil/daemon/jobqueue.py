@@ -7,6 +7,7 @@ import collections
 import contextlib
 import logging
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -38,6 +39,42 @@ class Job:
     final_state: str | None = None  # completed / aborted / failed / cancelled, once finished
     shutdown_paused: bool = False  # parked by a daemon shutdown (not by an operator)
     finished: threading.Event = field(default_factory=threading.Event)
+    # Reads of the store in progress, and whether it closes when the last of them ends: a job
+    # retired while a request was reading it closed the store under that request.
+    _readers: int = 0
+    _close_pending: bool = False
+    _lease_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[SessionStore | None]:
+        """The store for one read, kept open until the read ends; None once it was retired."""
+        with self._lease_lock:
+            if self._close_pending:
+                store = None
+            else:
+                self._readers += 1
+                store = self.store
+        try:
+            yield store
+        finally:
+            if store is not None:
+                with self._lease_lock:
+                    self._readers -= 1
+                    close = self._close_pending and self._readers == 0
+                if close:
+                    self._close_store()
+
+    def retire_store(self) -> None:
+        """Close the store now, or when the last read of it ends."""
+        with self._lease_lock:
+            self._close_pending = True
+            close = self._readers == 0
+        if close:
+            self._close_store()
+
+    def _close_store(self) -> None:
+        with contextlib.suppress(Exception):
+            self.store.close()
 
     def live_state(self) -> str | None:
         """The session's state as this daemon shows it (status and listing alike): an
@@ -136,5 +173,4 @@ class JobQueue:
                 del self.jobs[old]
                 # Its journal would stay open until the garbage collector found it (the soak
                 # saw 48 open where 32 are kept): reads go to disk from now on.
-                with contextlib.suppress(Exception):
-                    gone.store.close()
+                gone.retire_store()

@@ -69,8 +69,10 @@ class SessionReads:
         """The session's store for reading: the live one, or one opened for this request."""
         job = self._sessions.job(session_id)
         if job is not None:
-            yield job.store
-            return
+            with job.reading() as live:
+                if live is not None:
+                    yield live
+                    return
         with listing.stored(self._sessions.root, session_id, self._sessions.rig.clock) as store:
             yield store
 

@@ -116,6 +116,10 @@ def _is_damage(exc: sqlite3.Error) -> bool:
     return "malformed" in text or "not a database" in text
 
 
+class JournalClosed(JournalError):
+    """The journal was closed (its session retired from memory); open the session again."""
+
+
 class DuplicateEvent(M2S2Error):
     """An event that is already committed (or being written) was written again."""
 
@@ -180,18 +184,19 @@ class Journal:
     @contextmanager
     def transaction(self) -> Iterator[sqlite3.Connection]:
         with self._lock:
+            db = self._open_db()
             try:
-                self._db.execute("BEGIN IMMEDIATE")
+                db.execute("BEGIN IMMEDIATE")
             except sqlite3.OperationalError as exc:
                 if _is_full(exc):
                     raise DiskFull(self.path.parent, detail=str(exc)) from exc
                 raise
             try:
-                yield self._db
-                self._db.execute("COMMIT")
+                yield db
+                db.execute("COMMIT")
             except BaseException as exc:
-                if self._db.in_transaction:
-                    self._db.execute("ROLLBACK")
+                if db.in_transaction:
+                    db.execute("ROLLBACK")
                 if isinstance(exc, sqlite3.OperationalError) and _is_full(exc):
                     raise DiskFull(self.path.parent, detail=str(exc)) from exc
                 if isinstance(exc, sqlite3.DatabaseError) and _is_damage(exc):
@@ -201,7 +206,7 @@ class Journal:
     def query(self, sql: str, args: tuple = ()) -> list[sqlite3.Row]:
         with self._lock:
             try:
-                return self._db.execute(sql, args).fetchall()
+                return self._open_db().execute(sql, args).fetchall()
             except sqlite3.DatabaseError as exc:
                 if _is_damage(exc):
                     raise JournalDamaged(f"{self.path}: journal damaged ({exc})", str(exc)) from None
@@ -209,24 +214,45 @@ class Journal:
 
     def pragma(self, name: str) -> Any:
         with self._lock:
-            return self._db.execute(f"PRAGMA {name}").fetchone()[0]
+            return self._open_db().execute(f"PRAGMA {name}").fetchone()[0]
 
     def check(self) -> str | None:
         """``PRAGMA quick_check``: None when the database is sound, else what is wrong
         (first lines). Catches the damage a query of the session row would not touch."""
         with self._lock:
             try:
-                rows = [r[0] for r in self._db.execute("PRAGMA quick_check(5)").fetchall()]
+                rows = [r[0] for r in self._open_db().execute("PRAGMA quick_check(5)").fetchall()]
             except sqlite3.DatabaseError as exc:
                 return str(exc)
         return None if rows == ["ok"] else "; ".join(str(r) for r in rows)
 
+    def _open_db(self) -> sqlite3.Connection:
+        """The connection (the caller holds the lock); :class:`JournalClosed` once closed."""
+        db = self._db
+        if db is None:
+            raise JournalClosed(f"{self.path}: journal closed")
+        return db
+
+    def reopen_read_only(self) -> None:
+        """Swap the connection for a read-only one in place: a reader holding this journal
+        keeps reading (swapping the object left one querying a closed connection)."""
+        fresh = Journal(self.path, read_only=True)
+        with self._lock:
+            old, self._db = self._db, fresh._db
+            fresh._db = None  # type: ignore[assignment]
+            self.read_only = True
+            if old is not None:
+                old.close()
+
     def close(self) -> None:
-        db = getattr(self, "_db", None)
-        if db is not None:
-            with self._lock:
-                db.close()
+        lock = getattr(self, "_lock", None)
+        if lock is None:  # failed before the lock existed
+            return
+        with lock:
+            db = getattr(self, "_db", None)
             self._db = None  # type: ignore[assignment]
+            if db is not None:
+                db.close()
 
     # -------------------------------------------------------------- session row
     def init_session(self, *, session_id: str, satellite: str, build: str, sweep_json: str, rig_json: str,

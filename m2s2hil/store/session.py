@@ -191,8 +191,7 @@ class SessionStore:
         finished session's frames; another process may resume it from then on)."""
         if self._owner is None:
             return
-        old, self.journal = self.journal, Journal(self.path / JOURNAL, read_only=True)
-        old.close()
+        self.journal.reopen_read_only()
         self._owner.release()
         self._owner = None
 
