@@ -36,7 +36,11 @@ def evaluate_cmd(
         help="multispectral segmenter: spectral, spectral-smooth, spectral-sweep (one mixture a session "
              "and lighting) or sam; its RGB counterpart runs with it",
     ),
-    also: list[str] = typer.Option([], "--also", help="more segmenters to time and score (repeatable)"),
+    also: list[str] = typer.Option(
+        [], "--also",
+        help="more segmenters to time and score (repeatable), e.g. spectral-pose: each frame labelled "
+             "with the materials of its pose under diffuse light",
+    ),
     checkpoint: Path | None = typer.Option(None, "--checkpoint", help="SAM checkpoint (for --segmenter sam)"),
     option: list[str] = typer.Option(
         [], "--option", "-O",

@@ -62,15 +62,18 @@ from m2s2hil.analysis.evaluation.options import (
     EvalOptions,
     cached_segmenter,
     check_segmenters,
+    is_pose,
     is_sweep,
     mtc_predictor,
 )
 from m2s2hil.analysis.evaluation.parallel import dask_client, describe, map_ordered
+from m2s2hil.analysis.evaluation.poses import attach_pose_references
 from m2s2hil.analysis.evaluation.sweeps import fit_sweeps, sweep_cube
 from m2s2hil.analysis.metrics.band_stability import band_stability
 from m2s2hil.analysis.metrics.mtc import mtc
 from m2s2hil.analysis.metrics.scores import score_clusters
 from m2s2hil.analysis.segmenters.masks import segment_masked, takes_saturated
+from m2s2hil.analysis.segmenters.pose import PoseReference
 from m2s2hil.analysis.segmenters.spectral import foreground_mask
 
 log = logging.getLogger(__name__)
@@ -93,19 +96,40 @@ def _segmenter_result(
     errors: dict[str, str] = {}
     try:
         seg = cached_segmenter(name, options, bands_nm)
+        pred = None
+        if is_pose(name):  # labelled from the pose's diffuse frame (evaluation.poses)
+            ref = job.pose_ref
+            if not isinstance(ref, PoseReference):
+                raise EvaluationError(ref or f"{name}: no pose reference was looked for")
+            seg.use(ref)  # type: ignore[attr-defined]
+            res["pose_reference"] = ref.image_id
+            if ref.image_id == job.image_id:  # a diffuse frame is its own reference
+                pred = ref.labels.astype(np.int64)
+                res["time_s"] = ref.time_s
         if is_sweep(name):  # label with the mixture fitted on this image's sweep (evaluation.sweeps)
             model = dict(job.sweep).get(name)
             if model is None or isinstance(model, str):
                 raise EvaluationError(model or f"{name}: no model fitted for this image's sweep")
             seg.use(model)  # type: ignore[attr-defined]
             cube = sweep_cube(cube, job)  # at the exposure the sweep was fitted at
-        t1 = time.perf_counter()
-        pred = segment_masked(seg, cube, saturated)
-        res["time_s"] = time.perf_counter() - t1
+        if pred is None:
+            t1 = time.perf_counter()
+            pred = segment_masked(seg, cube, saturated)
+            res["time_s"] = time.perf_counter() - t1
+            last = getattr(seg, "last", None) if is_pose(name) else None
+            if last is not None:  # how far the reference was moved to meet this frame
+                res["pose_shift_rows"], res["pose_shift_cols"] = last.shift
         res["n_segments"] = len(np.unique(pred[pred > 0]))
     except Exception as exc:  # reported per segmenter; the image's other segmenters still run
         log.warning("%s on %s failed: %s", name, job.image_id, exc)
         return {"errors": {"segment": _error(exc)}}
+    return _scored(res, errors, name, pred, cube, gt, job, options, seg, projected, saturated)
+
+
+def _scored(res: dict[str, Any], errors: dict[str, str], name: str, pred: np.ndarray, cube: np.ndarray,
+            gt: np.ndarray | None, job: FrameJob, options: EvalOptions, seg: Any,
+            projected: np.ndarray | None, saturated: np.ndarray | None) -> dict[str, Any]:
+    """``res`` with the scores of ``pred`` and the segmenter's mTC."""
     if gt is not None:
         try:
             s, _ = score_clusters(gt, pred)
@@ -290,12 +314,14 @@ def evaluate_jobs(
     t0 = time.perf_counter()
     if workers == 0 and not scheduler:
         fitted = fit_sweeps(jobs, options)  # the sweep segmenters' mixtures first, one task a sweep
+        fitted = attach_pose_references(fitted, options)  # then spectral-pose's references
         records = map_ordered(evaluate_job, fitted, client=None, on_result=on_result, options=options)
         compute = describe(None)
     else:
         with dask_client(scheduler, workers=workers, processes=processes) as client:
             compute = describe(client)
             fitted = fit_sweeps(jobs, options, client=client)
+            fitted = attach_pose_references(fitted, options, client=client)
             records = map_ordered(evaluate_job, fitted, client=client, on_result=on_result, options=options)
     bands_nm: Sequence[float] = next((j.camera["bands_nm"] for j in jobs if j.camera.get("bands_nm")), ())
     bands = band_report(records, options, bands_nm)

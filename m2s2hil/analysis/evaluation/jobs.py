@@ -51,7 +51,8 @@ class BracketFrame:
 
 @dataclass(frozen=True)
 class FrameJob:
-    """One image to evaluate: where its data is and what it shows. Picklable, pixel-free."""
+    """One image to evaluate: where its data is and what it shows. Picklable; pixel-free but for
+    ``pose_ref``, attached only when ``spectral-pose`` is evaluated."""
 
     image_id: str
     source: str  # session id, or the dataset folder
@@ -79,6 +80,10 @@ class FrameJob:
     sweep_scale: float = 1.0
     # the pose's extra exposures (a bracketed sweep): loading merges them into this image
     bracket: tuple[BracketFrame, ...] = ()
+    # ``spectral-pose``'s reference (evaluation.poses): the pose's diffuse frame's labels and
+    # log-energy image (``segmenters.pose.PoseReference``, one small map each), why there is none as
+    # a string, or None when no segmenter asks for one
+    pose_ref: Any = None
 
 
 def _camera_json(model: CameraModel) -> dict[str, Any]:

@@ -64,6 +64,12 @@ class EvalOptions:
                 f"{self.multi!r} is an RGB baseline: choose the multispectral segmenter "
                 f"({', '.join(RGB_COUNTERPART)}); its RGB counterpart is evaluated with it"
             )
+        if is_pose(self.multi):
+            raise UsageError(
+                f"{self.multi!r} labels each frame from its pose under diffuse light and has no RGB "
+                "counterpart for Table 2: evaluate it beside the multispectral segmenter (--also "
+                f"{self.multi})"
+            )
         if not -1.0 <= self.rho <= 1.0:
             raise UsageError(f"rho must lie in [-1, 1], got {self.rho}")
         if not self.mtc_bands or min(self.mtc_bands) < 1:
@@ -84,6 +90,8 @@ def make_segmenter(
 ) -> Segmenter:
     """A segmenter by name (see module docstring); ``bands_nm`` feeds the RGB rendering."""
     opts = dict(options or {})
+    if not is_pose(name):  # the pose segmenter's own options (``segmenters.pose``)
+        opts = {k: v for k, v in opts.items() if not k.startswith("pose_")}
     base = name
     if name.endswith("-smooth"):
         base = name[: -len("-smooth")]
@@ -126,6 +134,15 @@ def cached_segmenter(name: str, options: EvalOptions, bands_nm: Sequence[float])
 def is_sweep(name: str) -> bool:
     """A segmenter fitted once on each sweep's frames (``segmenters.sweep``) before any is labelled."""
     return name.endswith("-sweep")
+
+
+def is_pose(name: str) -> bool:
+    """A segmenter that labels a frame from its pose's diffuse frame (``segmenters.pose``)."""
+    return name == "spectral-pose"
+
+
+#: the sweep segmenter that labels each pose's reference for ``spectral-pose`` (evaluation.poses)
+POSE_REFERENCE_SEGMENTER = "spectral-sweep"
 
 
 def is_rgb(name: str) -> bool:

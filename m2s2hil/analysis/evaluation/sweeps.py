@@ -106,10 +106,12 @@ def scaled_to_sweep(members: list[FrameJob]) -> list[FrameJob]:
     return [replace(j, sweep_scale=known[0] / e) for j, e in zip(members, known, strict=True)]
 
 
-def fit_sweeps(jobs: Sequence[FrameJob], options: EvalOptions, *, client: Any = None) -> list[FrameJob]:
+def fit_sweeps(jobs: Sequence[FrameJob], options: EvalOptions, *, client: Any = None,
+               names: Sequence[str] | None = None) -> list[FrameJob]:
     """``jobs`` with each sweep segmenter's model for their sweep attached (``FrameJob.sweep``) and
-    their scale to the sweep's exposure (``FrameJob.sweep_scale``), in the order given."""
-    names = [n for n in options.segmenters if is_sweep(n)]
+    their scale to the sweep's exposure (``FrameJob.sweep_scale``), in the order given; ``names``:
+    these sweep segmenters instead of the evaluated ones."""
+    names = [n for n in (options.segmenters if names is None else names) if is_sweep(n)]
     if not names:
         return list(jobs)
     groups: dict[SweepKey, list[FrameJob]] = {}

@@ -23,13 +23,16 @@ rgb-nir    the same on the paper's wavelength→RGB map with the near-infrared b
 spectral-sweep ``SweepSegmenter``: the spectral segmenter with one mixture fitted on a whole
            sweep (``fit(cubes)`` first; ``evaluate`` fits one per session and lighting)
 rgb-sweep  ``RgbBaseline(SweepSegmenter)``: the same on camera RGB
+spectral-pose ``PoseSegmenter``: a frame labelled with the materials of the same pose under
+           diffuse light (``use(reference)`` first; ``evaluate`` finds each pose's reference)
 sam        ``SamSegmenter``: SAM per selected band, majority-vote fusion (optional extra)
 sam-rgb    ``RgbBaseline(SamSegmenter(mode="image"))``: SAM on the camera RGB image
 ========== ===============================================================
 
 Options ``bands_nm`` and ``ir_cut_nm`` (camera) or ``gamma`` and ``nir`` (``rgb-nir``) go to
-the RGB rendering of the ``rgb*`` segmenters; every other option goes to the inner
-segmenter's constructor.
+the RGB rendering of the ``rgb*`` segmenters; ``pose_*`` options and ``seed`` go to
+``spectral-pose``, which takes no other; every other option goes to the inner segmenter's
+constructor.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ import numpy as np
 
 from m2s2hil.analysis.arrays import as_cube, as_label_map
 from m2s2hil.analysis.errors import AnalysisInputError, UnknownSegmenterError
+from m2s2hil.analysis.segmenters.pose import PoseSegmenter
 from m2s2hil.analysis.segmenters.rgb import RgbBaseline
 from m2s2hil.analysis.segmenters.sam import SamSegmenter
 from m2s2hil.analysis.segmenters.spectral import SpectralSegmenter
@@ -130,6 +134,11 @@ def _rgb_sweep(**options: Any) -> Segmenter:
     return RgbBaseline(SweepSegmenter(**rest), **rgb)
 
 
+def _pose(**options: Any) -> Segmenter:
+    # The options of an evaluation go to all its segmenters; the reference's segmenter takes the rest.
+    return PoseSegmenter(**{k: v for k, v in options.items() if k.startswith("pose_") or k == "seed"})
+
+
 def _sam(**options: Any) -> Segmenter:
     return SamSegmenter(**options)
 
@@ -145,5 +154,6 @@ register_segmenter("rgb", _rgb_spectral)
 register_segmenter("rgb-nir", _rgb_nir_spectral)
 register_segmenter("spectral-sweep", _sweep)
 register_segmenter("rgb-sweep", _rgb_sweep)
+register_segmenter("spectral-pose", _pose)
 register_segmenter("sam", _sam)
 register_segmenter("sam-rgb", _sam_rgb)
