@@ -312,6 +312,7 @@ def test_each_frame_records_its_exposure_and_a_sweep_mixing_exposures_is_scaled_
     assert np.allclose(sweep_cube(cube, fitted[3]), cube * 0.25)
 
 
+@pytest.mark.slow  # three evaluations of the module's session
 def test_spectral_pose_labels_each_spotlit_frame_from_its_pose_under_diffuse_light(session):
     jobs, _ = collect_jobs(session)
     res = evaluate_jobs(jobs, EvalOptions(extra=("spectral-pose",), mtc_for="none"), workers=0)
@@ -342,6 +343,7 @@ def test_spectral_pose_labels_each_spotlit_frame_from_its_pose_under_diffuse_lig
             >= np.mean([r["results"]["spectral-sweep"]["dice"] for r in lit_again]))
 
 
+@pytest.mark.slow  # fits the reference sweep and evaluates the module's session through the CLI
 def test_a_pose_without_diffuse_light_says_so_and_the_cli_writes_the_columns(session, tmp_path):
     from dataclasses import replace
 
