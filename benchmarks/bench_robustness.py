@@ -54,6 +54,8 @@ CELLS: dict[str, dict[str, Any]] = {
     # spotlight's shadows lifted out of the noise; run by name (bench_robustness_wide.py --cells)
     **{f"spot-{a}°-x{r}": {"lightings": ("directional",), "spot_angle_deg": float(a), "bracket": float(r)}
        for r in (16, 64) for a in (0, 45, 80)},
+    # over-exposed, each pose again at a quarter of the exposure (its clipped bands read from that)
+    "peak-150%-x0.25": {"peak_fraction": 1.5, "bracket": 0.25},
 }
 # cells run only when named
 BY_NAME = tuple(n for n, spec in CELLS.items() if "bracket" in spec)

@@ -18,3 +18,21 @@ def test_a_frame_under_the_spotlight_knows_its_shadows():
 
     assert shadow(lit) == 0.0
     assert shadow(spot) > 0.02  # 4 % of the object at this view
+
+
+def test_a_shorter_bracket_reads_an_over_exposed_frames_clipped_bands():
+    import pytest
+
+    from m2s2hil.analysis.errors import AnalysisInputError
+
+    over = one_frame("voyager", "B2", size=256, peak_fraction=1.5)
+    merged = one_frame("voyager", "B2", size=256, peak_fraction=1.5, bracket=0.25)
+    clipped = float(over.band_saturated.any(axis=0)[over.gt > 0].mean())
+    assert clipped > 0.2  # half the object has a band clipped at 150 % of full scale
+    assert not merged.band_saturated.any()  # each read from the quarter exposure
+    obj = over.gt > 0
+    fine = obj & ~over.saturated  # where neither clipped, the merge keeps the first frame's scale
+    assert np.median(merged.cube[:, fine] / np.maximum(over.cube[:, fine], 1)) == pytest.approx(1, abs=0.05)
+    assert merged.cube[:, obj & over.saturated].max() > over.cube[:, obj & over.saturated].max()
+    with pytest.raises(AnalysisInputError, match="not be 1"):
+        one_frame("voyager", "B2", size=256, bracket=1.0)

@@ -14,7 +14,8 @@ Conditions for the robustness benchmark (``benchmarks/bench_robustness.py``): ``
 bounding radius as a fraction of the frame side); None keeps the rig's value. ``bracket`` takes
 each pose again at that many times the exposure (up to ``MAX_EXPOSURE_S``) and merges the two
 (``processing.bracket``): the cube reads like the first frame with its shadows lifted out of
-the noise, and its masks are where both clipped. Each frame also
+the noise (a factor above 1) or its clipped bands read from the shorter frame (below 1), and its
+masks are where both clipped. Each frame also
 carries the processor's ``saturated`` mask (True where a band clipped) and ``band_saturated``,
 which bands.
 
@@ -106,8 +107,8 @@ def simulated_frames(
         raise AnalysisInputError("peak_fraction", f"must lie in (0, 10], got {peak_fraction}")
     if fill is not None and not 0 < fill < 1:
         raise AnalysisInputError("fill", f"must lie in (0, 1), got {fill}")
-    if bracket is not None and not 1 < bracket <= 1000:
-        problem = f"must lie in (1, 1000] (the long exposure over the short), got {bracket}"
+    if bracket is not None and not (0 < bracket <= 1000 and bracket != 1):
+        problem = f"must lie in (0, 1000] and not be 1 (the second exposure over the first), got {bracket}"
         raise AnalysisInputError("bracket", problem)
     cfg = load_rig(None)
     if read_noise_e is not None:
@@ -167,10 +168,10 @@ def simulated_frames(
                         labels = np.array(src.truth().labels, copy=True)
                         irr = src.truth().irradiance()
                         cube, sat_mask, by_band = develop(raw, exposure)
-                        if bracket is not None:  # the same pose again, longer, merged per band
-                            longer = min(MAX_EXPOSURE_S, exposure * bracket)
-                            cube2, _, by_band2 = develop(src.capture(longer), longer)
-                            merged = merge_bracket([cube, cube2], [exposure, longer], [by_band, by_band2])
+                        if bracket is not None:  # the same pose again, longer or shorter, merged per band
+                            other = min(MAX_EXPOSURE_S, exposure * bracket)
+                            cube2, _, by_band2 = develop(src.capture(other), other)
+                            merged = merge_bracket([cube, cube2], [exposure, other], [by_band, by_band2])
                             cube, by_band = merged.cube, merged.clipped
                             sat_mask = by_band.any(axis=0)
                         gt = labels_to_cube(labels, cube.shape[1:])
