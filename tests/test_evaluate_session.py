@@ -312,10 +312,11 @@ def test_each_frame_records_its_exposure_and_a_sweep_mixing_exposures_is_scaled_
     assert np.allclose(sweep_cube(cube, fitted[3]), cube * 0.25)
 
 
-@pytest.mark.slow  # three evaluations of the module's session
+@pytest.mark.slow  # evaluates the module's session with the sweep segmenters
 def test_spectral_pose_labels_each_spotlit_frame_from_its_pose_under_diffuse_light(session):
     jobs, _ = collect_jobs(session)
-    res = evaluate_jobs(jobs, EvalOptions(extra=("spectral-pose",), mtc_for="none"), workers=0)
+    res = evaluate_jobs(jobs, EvalOptions(multi="spectral-sweep", extra=("spectral-pose",), mtc_for="none"),
+                        workers=0)
     by_id = {r["image_id"]: r for r in res.records}
     lit = [r for r in res.records if r["lighting"] == "directional"]
     assert len(lit) == 4
@@ -326,21 +327,14 @@ def test_spectral_pose_labels_each_spotlit_frame_from_its_pose_under_diffuse_lig
         assert ref["lighting"] == "weak" and ref["azimuth_deg"] == r["azimuth_deg"]
         assert (pose["pose_shift_rows"], pose["pose_shift_cols"]) == (0, 0)  # the stage came back exactly
         assert pose["time_s"] > 0 and 0 <= pose["dice"] <= 1
-    # under diffuse light a frame is its own reference: the sweep segmenter's labels, fitted here
-    # although the evaluation does not run that segmenter itself
+    # under diffuse light a frame is its own reference: the sweep segmenter's labels
     for r in res.records:
         if r["lighting"] == "weak":
-            assert r["results"]["spectral-pose"]["pose_reference"] == r["image_id"]
-    again = evaluate_jobs(jobs, EvalOptions(multi="spectral-sweep", extra=("spectral-pose",), mtc_for="none"),
-                          workers=0)
-    for r in again.records:
-        if r["lighting"] == "weak":
             pose, sweep = r["results"]["spectral-pose"], r["results"]["spectral-sweep"]
-            assert pose["dice"] == pytest.approx(sweep["dice"])
+            assert pose["pose_reference"] == r["image_id"] and pose["dice"] == pytest.approx(sweep["dice"])
     # told the materials, the spotlit frames score at least as the segmenter does on them alone
-    lit_again = [r for r in again.records if r["lighting"] == "directional"]
-    assert (np.mean([r["results"]["spectral-pose"]["dice"] for r in lit_again])
-            >= np.mean([r["results"]["spectral-sweep"]["dice"] for r in lit_again]))
+    assert (np.mean([r["results"]["spectral-pose"]["dice"] for r in lit])
+            >= np.mean([r["results"]["spectral-sweep"]["dice"] for r in lit]))
 
 
 @pytest.mark.slow  # fits the reference sweep and evaluates the module's session through the CLI
@@ -363,7 +357,9 @@ def test_a_pose_without_diffuse_light_says_so_and_the_cli_writes_the_columns(ses
     assert res.exit_code == 0, res.output
     rows = [r for r in csv.DictReader(io.StringIO((out / "per_image.csv").read_text()))
             if r["segmenter"] == "spectral-pose"]
+    # (the evaluation's own segmenter is spectral: the reference's sweep is fitted for spectral-pose)
     assert len(rows) == 8 and all("/weak/E0/" in r["pose_reference"] for r in rows)
+    assert all(r["failed"] == "" and 0 <= float(r["dice"]) <= 1 for r in rows)
     assert {r["pose_shift_rows"] for r in rows if r["lighting"] == "directional"} == {"0"}
     bad = run_cli("evaluate", session, "--out", tmp_path / "ev2", "--segmenter", "spectral-pose")
     assert bad.exit_code != 0 and "--also spectral-pose" in bad.output and "Traceback" not in bad.output
