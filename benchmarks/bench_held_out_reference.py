@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_robustness import CELLS, REFERENCE  # type: ignore[import-not-found]
+from bench_robustness import REFERENCE, render_views  # type: ignore[import-not-found]
 from scipy import stats
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,19 +45,6 @@ LABELS = {
 }
 
 
-def render(cell: str, azimuths: list[float], size: int, seed: int) -> dict[str, list[Any]]:
-    """Views of every build under ``cell``, grouped by build, as ``run_view`` renders them."""
-    from m2s2hil.analysis.study.simframes import simulated_frames
-
-    spec = dict(CELLS[cell])
-    kw = {"lightings": ("weak",), "size": int(spec.pop("size", size)), "seed": seed, **spec}
-    groups: dict[str, list[Any]] = {}
-    for az in azimuths:
-        for f in simulated_frames(builds=("B1", "B2", "B3"), elevations=("E1",), azimuths=(az,), **kw):
-            groups.setdefault(f"{f.satellite}_{f.build}", []).append((az, f.cube, f.gt))
-    return groups
-
-
 def run_cell(cell: str, refs: list[str], azimuths: list[float], size: int, seed: int) -> list[dict[str, Any]]:
     from threadpoolctl import threadpool_limits
 
@@ -65,7 +52,8 @@ def run_cell(cell: str, refs: list[str], azimuths: list[float], size: int, seed:
 
     rows: list[dict[str, Any]] = []
     with threadpool_limits(1):
-        for build, views in render(cell, azimuths, size, seed).items():
+        for build, frames in render_views(cell, azimuths, size, seed).items():
+            views = [(f.azimuth_deg, f.cube, f.gt) for f in frames]
             cubes, gts = [v[1] for v in views], [v[2] for v in views]
             scores = {"qda-in": [pixel_bounds(c, g).qda for c, g in zip(cubes, gts, strict=True)]}
             for ref in refs:

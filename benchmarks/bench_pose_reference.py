@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_robustness import CELLS, REFERENCE  # type: ignore[import-not-found]
+from bench_robustness import REFERENCE, render_views  # type: ignore[import-not-found]
 from bench_robustness_wide import build_interval  # type: ignore[import-not-found]
 from scipy import stats
 
@@ -42,19 +42,6 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "images"
 GOAL_DICE, GOAL_K = -0.05, 0.90
 DEFAULT_CELLS = ("spot-0°", "spot-45°", "spot-80°")
-
-
-def render(cell: str, azimuths: list[float], size: int, seed: int) -> dict[str, list[Any]]:
-    """Frames of every build under ``cell``, grouped by build, in azimuth order."""
-    from m2s2hil.analysis.study.simframes import simulated_frames
-
-    spec = dict(CELLS[cell])
-    kw = {"lightings": ("weak",), "size": int(spec.pop("size", size)), "seed": seed, **spec}
-    groups: dict[str, list[Any]] = {}
-    for az in azimuths:
-        for f in simulated_frames(builds=("B1", "B2", "B3"), elevations=("E1",), azimuths=(az,), **kw):
-            groups.setdefault(f"{f.satellite}_{f.build}", []).append(f)
-    return groups
 
 
 def sweep_labels(frames: list[Any]) -> list[np.ndarray]:
@@ -83,8 +70,8 @@ def run_cell(cell: str, azimuths: list[float], size: int, seed: int,
 
     rows: list[dict[str, Any]] = []
     with threadpool_limits(1):
-        refs = render(REFERENCE, azimuths, size, seed)
-        for build, frames in render(cell, azimuths, size, seed).items():
+        refs = render_views(REFERENCE, azimuths, size, seed)
+        for build, frames in render_views(cell, azimuths, size, seed).items():
             ref_frames = refs[build]
             ref_labels = sweep_labels(ref_frames)
             t0 = time.process_time()
@@ -237,7 +224,7 @@ def refs_k_rate(args: argparse.Namespace, azimuths: list[float]) -> float:
 
     hits = total = 0
     with threadpool_limits(1):
-        for frames in render(REFERENCE, azimuths, args.size, args.seed).values():
+        for frames in render_views(REFERENCE, azimuths, args.size, args.seed).values():
             for f, labels in zip(frames, sweep_labels(frames), strict=True):
                 hits += abs(int(np.unique(labels[labels > 0]).size) - visible_materials(f.gt)) <= 1
                 total += 1

@@ -75,6 +75,20 @@ VARIANTS: dict[str, dict[str, Any]] = {
 }
 
 
+def render_views(cell: str, azimuths: list[float], size: int, seed: int) -> dict[str, list[Any]]:
+    """Frames of every build under ``cell`` at E1, grouped by ``satellite_build`` in azimuth order,
+    rendered view by view as ``bench_robustness_wide`` renders them (the same frames and noise)."""
+    from m2s2hil.analysis.study.simframes import simulated_frames
+
+    spec = dict(CELLS[cell])
+    kw = {"lightings": ("weak",), "size": int(spec.pop("size", size)), "seed": seed, **spec}
+    groups: dict[str, list[Any]] = {}
+    for az in azimuths:
+        for f in simulated_frames(builds=("B1", "B2", "B3"), elevations=("E1",), azimuths=(az,), **kw):
+            groups.setdefault(f"{f.satellite}_{f.build}", []).append(f)
+    return groups
+
+
 def run_cell(spec: dict[str, Any], size: int, azimuths: tuple[float, ...] = AZIMUTHS) -> list[dict[str, Any]]:
     from threadpoolctl import threadpool_limits
 
