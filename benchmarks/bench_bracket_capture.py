@@ -10,10 +10,12 @@ pose's reference.
 
 Per run and segmenter: K within ±1 of the visible materials (``simframes.visible_materials`` of the
 truth on the cube's grid), macro Dice, and ΔDice against weak light paired by pose, with a 95 % t
-interval; per build, the frames within ±1. Results go to ``docs/images/bracket_capture.json``.
+interval; per build, the frames within ±1. ``--pose`` also scores ``spectral-pose`` (each spotlit
+pose labelled with the materials of its weak-light frame, ``segmenters.pose``). Results go to
+``docs/images/bracket_capture_spot<angle>[_pose].json``.
 
     nice -n 10 .venv/bin/python benchmarks/bench_bracket_capture.py [--size 1024] [--step 10]
-        [--spot 45] [--factor 16] [--keep DIR]
+        [--spot 45] [--factor 16] [--pose] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -81,10 +83,11 @@ def pose(rec: dict[str, Any]) -> tuple[str, str, float]:
     return rec["satellite"], rec["build"], round(float(rec["azimuth_deg"]), 3)
 
 
-def summarise(records: list[dict[str, Any]], truth: dict[str, int]) -> dict[str, Any]:
+def summarise(records: list[dict[str, Any]], truth: dict[str, int],
+              names: Sequence[str] = SEGMENTERS) -> dict[str, Any]:
     out: dict[str, Any] = {}
     weak = {pose(r): r for r in records if r["lighting"] == "weak" and not r["error"]}
-    for name in SEGMENTERS:
+    for name in names:
         rows = {}
         for light in ("weak", "directional"):
             recs = [
@@ -130,12 +133,12 @@ def summarise(records: list[dict[str, Any]], truth: dict[str, int]) -> dict[str,
     return out
 
 
-def markdown(runs: dict[str, dict[str, Any]]) -> str:
+def markdown(runs: dict[str, dict[str, Any]], names: Sequence[str] = SEGMENTERS) -> str:
     lines = [
         "| segmenter | spotlight pose | K ±1 | Dice | ΔDice vs weak (paired) | 95 % interval |",
         "|---|---|---|---|---|---|",
     ]
-    for name in SEGMENTERS:
+    for name in names:
         ref = runs["bracket"][name]["weak"]
         lines.append(
             f"| {name} | weak light (reference) | {ref['k_within']:.1%} | {ref['dice']:.3f} | 0 | – |"
@@ -160,8 +163,10 @@ def main() -> None:
         "--keep", type=Path, help="capture into (or reuse) this data root instead of a temporary one"
     )
     ap.add_argument("--out", type=Path, default=OUT)
-    ap.add_argument("--name", default=None, help="output stem (default bracket_capture_spot<angle>)")
+    ap.add_argument("--name", default=None, help="output stem (default bracket_capture_spot<angle>[_pose])")
+    ap.add_argument("--pose", action="store_true", help="also score spectral-pose")
     args = ap.parse_args()
+    names = (*SEGMENTERS, "spectral-pose") if args.pose else SEGMENTERS
     root = args.keep or Path(tempfile.mkdtemp(prefix="bracket-capture-"))
     started = datetime.now(UTC)
     capture_s = 0.0
@@ -177,19 +182,21 @@ def main() -> None:
     for run, merge in (("bracket", True), ("own", False)):
         t0 = time.perf_counter()
         result = evaluate_jobs(
-            jobs, EvalOptions(multi="spectral-sweep", mtc_for="none", bracket=merge), workers=0
+            jobs,
+            EvalOptions(multi="spectral-sweep", mtc_for="none", bracket=merge, extra=tuple(names[2:])),
+            workers=0,
         )
         wall[run] = time.perf_counter() - t0
         if truth is None:
             truth = true_counts(
                 jobs, {r["image_id"]: r["cube_shape"] for r in result.records if not r["error"]}
             )
-        runs[run] = summarise(result.records, truth)
+        runs[run] = summarise(result.records, truth, names)
         print(f"{run}: evaluated {len(jobs)} images in {wall[run]:.0f} s", flush=True)
-    table = markdown(runs)
+    table = markdown(runs, names)
     print(table)
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.name or f"bracket_capture_spot{args.spot:g}"
+    stem = args.name or f"bracket_capture_spot{args.spot:g}" + ("_pose" if args.pose else "")
     (args.out / f"{stem}.json").write_text(
         json.dumps(
             {
