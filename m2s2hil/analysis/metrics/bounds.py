@@ -122,7 +122,10 @@ def _fit(x: np.ndarray, y: np.ndarray, model: Model, seed: int) -> Any:
     if model == "boosting":
         from sklearn.ensemble import HistGradientBoostingClassifier
 
-        return HistGradientBoostingClassifier(max_iter=100, early_stopping=False, random_state=seed).fit(x, y)
+        # (the leaf penalty: unpenalised, a class of a few dozen pixels made the softmax diverge;
+        # segmenters.pose measured it; the thirteenth pass's figures were taken without it)
+        return HistGradientBoostingClassifier(max_iter=100, early_stopping=False, l2_regularization=1.0,
+                                              random_state=seed).fit(x, y)
     from sklearn.discriminant_analysis import QuadraticDiscriminantAnalysis
 
     keep = np.isin(y, ids[counts >= x.shape[1] + 2])  # as pixel_bounds: too few pixels, no covariance
