@@ -139,6 +139,8 @@ def test_evaluate_command_gives_a_synthetic_session_its_columns(tmp_path, synth)
     # a sweep segmenter is fitted on a HIL session's sweep; here it is refused, saying so
     r = run_cli("evaluate", synth.path, "--out", tmp_path / "sweep", "--segmenter", "spectral-sweep")
     assert r.exit_code == 2 and "view by view" in r.stderr and not (tmp_path / "sweep").exists(), r.output
+    r = run_cli("evaluate", synth.path, "--out", tmp_path / "pose", "--segmenter", "spectral-pose")
+    assert r.exit_code == 2 and "diffuse light" in r.stderr and not (tmp_path / "pose").exists(), r.output
 
 
 def test_synth_command_renders_a_session_of_its_own_kind(tmp_path):

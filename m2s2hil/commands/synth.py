@@ -91,16 +91,18 @@ def evaluate_synthetic_session(
     limit: int | None, rho: float,
 ) -> None:
     """``m2s2hil evaluate SYNTHETIC [--pair-with HIL]``: Table 2's synthetic columns, sim to real."""
-    from m2s2hil.analysis.evaluation.options import is_sweep
+    from m2s2hil.analysis.evaluation.options import is_pose, is_sweep
     from m2s2hil.analysis.evaluation.synthetic import evaluate_synthetic
     from m2s2hil.analysis.segmenters.registry import create_segmenter
     from m2s2hil.errors import UsageError
     from m2s2hil.store.catalogue import default_data_root
     from m2s2hil.store.session import SessionStore
 
-    if is_sweep(segmenter):  # the synthetic columns segment single bands and renders view by view
-        raise UsageError(f"--segmenter {segmenter} is fitted on a HIL session's sweep; a synthetic session "
-                         "is evaluated view by view: use spectral, spectral-smooth or sam")
+    if is_sweep(segmenter) or is_pose(segmenter):  # the synthetic columns go render by render
+        what = ("fitted on a HIL session's sweep" if is_sweep(segmenter)
+                else "told the materials by a HIL pose's diffuse frame")
+        raise UsageError(f"--segmenter {segmenter} is {what}; a synthetic session is evaluated view by view: "
+                         "use spectral, spectral-smooth or sam")
     seg = create_segmenter(segmenter, **seg_opts)
     hil = None
     if pair_with is not None:
