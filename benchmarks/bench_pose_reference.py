@@ -62,6 +62,7 @@ def shifted_cube(cube: np.ndarray, d: int) -> np.ndarray:
 
 def run_cell(cell: str, azimuths: list[float], size: int, seed: int,
              shifts: list[int]) -> list[dict[str, Any]]:
+    import sklearn.ensemble  # noqa: F401  (loaded before the thread limit, which binds loaded libraries only)
     from threadpoolctl import threadpool_limits
 
     from m2s2hil.analysis.metrics.scores import score_clusters
@@ -142,7 +143,7 @@ def chart(summary: list[dict[str, Any]], ref_k: float, path: Path, title: str) -
 
     cells = list(dict.fromkeys(s["cell"] for s in summary))
     methods = list(dict.fromkeys(s["method"] for s in summary))
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.2))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 6.0))
     width = 0.8 / len(methods)
     colours = plt.get_cmap("tab10")
     for j, m in enumerate(methods):
@@ -169,8 +170,8 @@ def chart(summary: list[dict[str, Any]], ref_k: float, path: Path, title: str) -
     axes[1].set_ylabel("frames with K within ±1 (%)\n(95 % interval, builds resampled)", fontsize=9)
     for ax in axes:
         ax.set_xticks(range(len(cells)), cells, fontsize=9)
-    axes[0].legend(fontsize=8, ncol=2, loc="lower left")
-    axes[1].legend(fontsize=8, ncol=2, loc="lower left")
+    for ax in axes:  # below the axes: the bars fill them
+        ax.legend(fontsize=8, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.08))
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
