@@ -39,6 +39,7 @@ import numpy as np
 from m2s2hil.analysis.arrays import as_cube
 from m2s2hil.analysis.errors import AnalysisInputError
 from m2s2hil.analysis.metrics.scores import score_clusters
+from m2s2hil.analysis.segmenters.pose import pose_features
 
 
 @dataclass(frozen=True)
@@ -48,12 +49,11 @@ class PixelBounds:
 
 
 def pixel_features(cube: np.ndarray, brightness_weight: float = 0.1) -> np.ndarray:
-    """(features, H, W): unit spectra and ``brightness_weight`` · log energy (the segmenter's defaults)."""
-    energy = np.linalg.norm(cube, axis=0)
-    unit = cube / np.maximum(energy, 1e-12)
+    """(features, H, W): unit spectra and ``brightness_weight`` · log energy (the segmenter's defaults;
+    ``spectral-pose`` teaches its trees on the same)."""
     if brightness_weight <= 0:
-        return unit
-    return np.concatenate([unit, brightness_weight * np.log(np.maximum(energy, 1e-12))[np.newaxis]])
+        return cube / np.maximum(np.linalg.norm(cube, axis=0), 1e-12)
+    return pose_features(cube, brightness_weight)
 
 
 def pixel_bounds(cube: object, gt: object, *, brightness_weight: float = 0.1) -> PixelBounds:
