@@ -312,36 +312,38 @@ def test_each_frame_records_its_exposure_and_a_sweep_mixing_exposures_is_scaled_
     assert np.allclose(sweep_cube(cube, fitted[3]), cube * 0.25)
 
 
-@pytest.mark.slow  # evaluates the module's session with the sweep segmenters
-def test_spectral_pose_labels_each_spotlit_frame_from_its_pose_under_diffuse_light(session):
-    jobs, _ = collect_jobs(session)
-    res = evaluate_jobs(jobs, EvalOptions(multi="spectral-sweep", extra=("spectral-pose",), mtc_for="none"),
-                        workers=0)
-    by_id = {r["image_id"]: r for r in res.records}
-    lit = [r for r in res.records if r["lighting"] == "directional"]
+@pytest.mark.slow  # evaluates the module's session with the sweep segmenters, through the CLI
+def test_spectral_pose_labels_each_spotlit_frame_from_its_pose_under_diffuse_light(session, tmp_path):
+    out = tmp_path / "ev"
+    res = run_cli("evaluate", session, "--out", out, "--workers", "0", "--segmenter", "spectral-sweep",
+                  "--also", "spectral-pose", "--mtc", "none")
+    assert res.exit_code == 0, res.output
+    rows = list(csv.DictReader(io.StringIO((out / "per_image.csv").read_text())))
+    pose = {r["image_id"]: r for r in rows if r["segmenter"] == "spectral-pose"}
+    sweep = {r["image_id"]: r for r in rows if r["segmenter"] == "spectral-sweep"}
+    assert len(pose) == 8 and all(r["failed"] == "" for r in pose.values())
+    lit = [i for i, r in pose.items() if r["lighting"] == "directional"]
     assert len(lit) == 4
-    for r in lit:
-        pose = r["results"]["spectral-pose"]
-        assert "errors" not in pose, pose
-        ref = by_id[pose["pose_reference"]]
-        assert ref["lighting"] == "weak" and ref["azimuth_deg"] == r["azimuth_deg"]
-        assert (pose["pose_shift_rows"], pose["pose_shift_cols"]) == (0, 0)  # the stage came back exactly
-        assert pose["time_s"] > 0 and 0 <= pose["dice"] <= 1
-    # under diffuse light a frame is its own reference: the sweep segmenter's labels
-    for r in res.records:
+    for i in lit:
+        ref = pose[pose[i]["pose_reference"]]
+        assert ref["lighting"] == "weak" and ref["azimuth_deg"] == pose[i]["azimuth_deg"]
+        # the stage came back exactly
+        assert (pose[i]["pose_shift_rows"], pose[i]["pose_shift_cols"]) == ("0", "0")
+        assert float(pose[i]["time_s"]) > 0 and 0 <= float(pose[i]["dice"]) <= 1
+    for i, r in pose.items():  # under diffuse light a frame is its own reference: the sweep's labels
         if r["lighting"] == "weak":
-            pose, sweep = r["results"]["spectral-pose"], r["results"]["spectral-sweep"]
-            assert pose["pose_reference"] == r["image_id"] and pose["dice"] == pytest.approx(sweep["dice"])
+            assert r["pose_reference"] == i and float(r["dice"]) == pytest.approx(float(sweep[i]["dice"]))
     # told the materials, the spotlit frames score at least as the segmenter does on them alone
-    assert (np.mean([r["results"]["spectral-pose"]["dice"] for r in lit])
-            >= np.mean([r["results"]["spectral-sweep"]["dice"] for r in lit]))
+    assert np.mean([float(pose[i]["dice"]) for i in lit]) >= np.mean([float(sweep[i]["dice"]) for i in lit])
+    bad = run_cli("evaluate", session, "--out", tmp_path / "ev2", "--segmenter", "spectral-pose")
+    assert bad.exit_code != 0 and "--also spectral-pose" in bad.output and "Traceback" not in bad.output
 
 
-@pytest.mark.slow  # fits the reference sweep and evaluates the module's session through the CLI
-def test_a_pose_without_diffuse_light_says_so_and_the_cli_writes_the_columns(session, tmp_path):
+def test_pose_references_are_found_or_their_absence_said(session):
     from dataclasses import replace
 
     from m2s2hil.analysis.evaluation.poses import attach_pose_references
+    from m2s2hil.analysis.segmenters.pose import PoseReference
 
     jobs, _ = collect_jobs(session)
     lit = [j for j in jobs if j.lighting == "directional"]
@@ -351,15 +353,9 @@ def test_a_pose_without_diffuse_light_says_so_and_the_cli_writes_the_columns(ses
                                      EvalOptions(extra=("spectral-pose",)))
     assert "no azimuth recorded" in unknown[0].pose_ref
     assert attach_pose_references(lit, EvalOptions()) == lit  # nothing asked, nothing attached
-    out = tmp_path / "ev"
-    res = run_cli("evaluate", session, "--out", out, "--workers", "0", "--also", "spectral-pose",
-                  "--mtc", "none")
-    assert res.exit_code == 0, res.output
-    rows = [r for r in csv.DictReader(io.StringIO((out / "per_image.csv").read_text()))
-            if r["segmenter"] == "spectral-pose"]
-    # (the evaluation's own segmenter is spectral: the reference's sweep is fitted for spectral-pose)
-    assert len(rows) == 8 and all("/weak/E0/" in r["pose_reference"] for r in rows)
-    assert all(r["failed"] == "" and 0 <= float(r["dice"]) <= 1 for r in rows)
-    assert {r["pose_shift_rows"] for r in rows if r["lighting"] == "directional"} == {"0"}
-    bad = run_cli("evaluate", session, "--out", tmp_path / "ev2", "--segmenter", "spectral-pose")
-    assert bad.exit_code != 0 and "--also spectral-pose" in bad.output and "Traceback" not in bad.output
+    # the evaluation's own segmenter is spectral: the reference sweep is fitted for spectral-pose
+    found = attach_pose_references(jobs, EvalOptions(extra=("spectral-pose",)))
+    weak = {j.azimuth_deg: j.image_id for j in jobs if j.lighting == "weak"}
+    for j in found:
+        assert isinstance(j.pose_ref, PoseReference), j.pose_ref
+        assert j.pose_ref.image_id == weak[j.azimuth_deg] and j.pose_ref.labels.max() >= 1
