@@ -41,9 +41,9 @@ class Job:
     finished: threading.Event = field(default_factory=threading.Event)
     # Reads of the store in progress, and whether it closes when the last of them ends: a job
     # retired while a request was reading it closed the store under that request.
-    _readers: int = 0
-    _close_pending: bool = False
-    _lease_lock: threading.Lock = field(default_factory=threading.Lock)
+    _readers: int = field(default=0, init=False, repr=False)
+    _close_pending: bool = field(default=False, init=False, repr=False)
+    _lease_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False)
 
     @contextlib.contextmanager
     def reading(self) -> Iterator[SessionStore | None]:

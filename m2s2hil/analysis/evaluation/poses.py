@@ -14,7 +14,6 @@ own reference: its ``spectral-pose`` labels are the sweep segmenter's.
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from collections.abc import Sequence
@@ -33,8 +32,6 @@ from m2s2hil.analysis.evaluation.parallel import map_ordered
 from m2s2hil.analysis.evaluation.sweeps import fit_sweeps, sweep_cube
 from m2s2hil.analysis.segmenters.masks import segment_masked
 from m2s2hil.analysis.segmenters.pose import POSE_REFERENCE_LIGHTINGS, PoseReference
-
-log = logging.getLogger(__name__)
 
 PoseKey = tuple[str, str, str, str, float]
 
@@ -69,12 +66,12 @@ def attach_pose_references(jobs: Sequence[FrameJob], options: EvalOptions, *,
     if not any(is_pose(n) for n in options.segmenters):
         return list(jobs)
     refs: dict[PoseKey, FrameJob] = {}
+    rank = POSE_REFERENCE_LIGHTINGS.index
     for job in jobs:
         key = pose_key(job)
         if key is None or job.lighting not in POSE_REFERENCE_LIGHTINGS:
             continue
         held = refs.get(key)
-        rank = POSE_REFERENCE_LIGHTINGS.index
         if held is None or rank(job.lighting) < rank(held.lighting):
             refs[key] = job
     # the reference lightings' sweeps, fitted where the evaluation did not fit them already

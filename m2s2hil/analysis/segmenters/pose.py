@@ -28,10 +28,11 @@ segmenter, names them.
 
 So the frame's pixels decide each pixel's material and the diffuse frame only names the materials:
 where the registration is a pixel off, the trees put the boundary where this frame's pixels put it
-(on the simulator at 2 px off: ΔDice −0.07 against −0.12 for the reference's labels copied; without
-an offset both are within 0.01). The count is the reference's: a material the reference missed is
-not found here. A frame with no pose under diffuse light has no reference and no labels from this
-segmenter (the evaluation reports why). The figures are in docs/evaluation.md, "Fourteenth pass".
+(on the simulator's spotlit frames 3 px off: ΔDice −0.001 against −0.164 for the reference's labels
+copied; without an offset both are within 0.002 of the reference). The count is the reference's:
+a material the reference missed is not found here. A frame with no pose under diffuse light has no
+reference and no labels from this segmenter (the evaluation reports why). The figures are in
+docs/evaluation.md, "Fourteenth pass".
 """
 
 from __future__ import annotations
